@@ -1,0 +1,50 @@
+"""The ``cloudct`` command line: one subcommand per everyday job.
+
+Each subcommand lives next to the code it drives and is registered here by a
+``register_cli(subparsers)`` function of its module.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: Modules that contribute subcommands, in the order ``--help`` lists them.
+COMMAND_MODULES = (
+    "data_synth.les",
+    "cloudct.mc.render",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``cloudct`` command with every subcommand."""
+    from cloudct import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="cloudct",
+        description="3D cloud tomography by differentiable Monte Carlo radiative transfer.",
+    )
+    parser.add_argument("--version", action="version", version=f"cloudct {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register_cli(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``cloudct`` console command."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 0
+    try:
+        return int(args.func(args) or 0)
+    except (ValueError, FileNotFoundError, FileExistsError) as err:
+        print(f"cloudct {args.command}: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""The Monte Carlo engine: grid traversal, sun source, local estimation, backward tracing."""

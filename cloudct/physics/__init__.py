@@ -1,0 +1,1 @@
+"""Optics of air and droplets: phase functions, particle mixing, Mie tables."""

@@ -1,0 +1,1 @@
+"""Path recycling (seed paper Sec. 5): not implemented yet (issue 6)."""

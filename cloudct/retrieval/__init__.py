@@ -1,0 +1,1 @@
+"""The retrieval loop (issue 7): not implemented yet."""

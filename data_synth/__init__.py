@@ -1,0 +1,1 @@
+"""Readers of LES cloud fields and synthetic data for cloudct."""
