@@ -1,0 +1,120 @@
+"""Backward (camera -> sun) path tracing with next-event estimation towards the sun.
+
+A pixel's value is the average radiance over its area on the image plane, so each sample
+starts at the pinhole through a uniform point of the pixel (:func:`cloudct.mc.cameras.
+pixel_ray`). The ray enters the medium, flies a distance sampled by exact inversion of the
+optical depth (Eq. 32), and at every scattering vertex collects the single-scattered sunlight
+
+    throughput * albedo * f_p(x, cos angle(sun travel, -ray)) * T(x -> sun) * F0,  F0 = 1,
+
+then continues in a direction drawn from the mixture phase function; at the Lambertian
+ground it collects throughput * A cos(theta0) / pi * T(ground -> sun) and bounces
+cosine-weighted. The same vertex routines as the forward estimator are used
+(:mod:`cloudct.mc.events`), with the same medium-independent Russian roulette. The direct
+view of the sun's disc is not part of the images (a delta the pixels never contain).
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit, prange
+
+from cloudct.mc.cameras import pixel_ray
+from cloudct.mc.events import lambertian_bounce, russian_roulette, scatter
+from cloudct.mc.random import DOMAIN_BACKWARD, stream_start, uniform
+from cloudct.mc.traversal import (
+    BOTTOM,
+    LEFT,
+    locate_point,
+    march,
+    optical_depth_to_exit,
+    ray_box_entry,
+    wrap_into_box,
+)
+from cloudct.physics.mixing import effective_albedo, mixture_phase_function
+
+INV_PI = 1.0 / math.pi
+
+
+@njit(cache=True)
+def trace_pixel_sample(
+    grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, index, view,
+    row, col,
+):
+    """Radiance estimate of one backward sample of pixel (view, row, col).
+
+    Returns ``(radiance, vertices)``; ``ground_albedo < 0`` means no ground.
+    """
+    state = stream_start(seed, DOMAIN_BACKWARD, index)
+    xi_u, state = uniform(state)
+    xi_v, state = uniform(state)
+    ux, uy, uz = pixel_ray(cams, view, row, col, xi_u, xi_v)
+    ox = cams.position[view, 0]
+    oy = cams.position[view, 1]
+    oz = cams.position[view, 2]
+    t = ray_box_entry(grid, ox, oy, oz, ux, uy, uz, periodic)
+    if t < 0.0:
+        return 0.0, 0
+    px, py, pz = ox + t * ux, oy + t * uy, oz + t * uz
+    if periodic:
+        px, py = wrap_into_box(grid, px, py)
+    ix, iy, iz = locate_point(grid, px, py, pz, ux, uy, uz)
+    sx, sy, sz = -sun.direction[0], -sun.direction[1], -sun.direction[2]  # towards the sun
+    radiance = 0.0
+    throughput = 1.0
+    depth = 0
+    while True:
+        u, state = uniform(state)
+        status, px, py, pz, ix, iy, iz, _ = march(
+            grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
+        )
+        if status == LEFT:
+            return radiance, depth
+        if status == BOTTOM and ground_albedo <= 0.0:
+            return radiance, depth
+        tau_sun = optical_depth_to_exit(grid, px, py, pz, sx, sy, sz, ix, iy, iz, periodic)
+        if status == BOTTOM:
+            radiance += throughput * ground_albedo * sz * INV_PI * math.exp(-tau_sun)
+            throughput *= ground_albedo
+            ux, uy, uz, state = lambertian_bounce(state)
+        else:
+            throughput *= effective_albedo(grid, ix, iy, iz)
+            # sunlight travels along -s and leaves towards the camera along -u:
+            # the scattering cosine is (-s).(-u) = s.u
+            phase = mixture_phase_function(grid, bank, ix, iy, iz, sx * ux + sy * uy + sz * uz)
+            radiance += throughput * phase * math.exp(-tau_sun)
+            ux, uy, uz, state = scatter(grid, bank, ix, iy, iz, ux, uy, uz, state)
+        depth += 1
+        factor, state = russian_roulette(depth, rr_depth, rr_survival, state)
+        if factor == 0.0:
+            return radiance, depth
+        throughput *= factor
+
+
+@njit(parallel=True, cache=True)
+def backward_batches(
+    grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
+    samples_per_batch, first, last, images, events,
+):
+    """Samples ``first .. last - 1`` of every pixel in every batch, parallel over batches.
+
+    ``images[b]`` accumulates batch ``b``'s sum of sample radiances per pixel (not yet
+    divided by its sample count) and ``events[b]`` its number of path vertices.
+    """
+    nbatch, nview, nrows, ncols = images.shape
+    for b in prange(nbatch):
+        n = 0
+        for view in range(nview):
+            for row in range(nrows):
+                for col in range(ncols):
+                    pixel = (view * nrows + row) * ncols + col
+                    for k in range(first, last):
+                        index = (pixel * nbatch + b) * samples_per_batch + k
+                        value, vertices = trace_pixel_sample(
+                            grid, bank, cams, sun, periodic, ground_albedo, rr_depth,
+                            rr_survival, seed, index, view, row, col,
+                        )
+                        images[b, view, row, col] += value
+                        n += vertices
+        events[b] += n

@@ -1,0 +1,262 @@
+"""Pinhole perspective cameras: definition, netCDF form, and projection onto pixels.
+
+A camera is a pinhole at ``position`` looking at ``lookat``; ``up`` fixes the image's
+vertical (it need not be orthogonal to the view direction). ``fov`` is the full field of
+view across the image's columns (the horizontal axis); pixels are square. Image arrays are
+[row, col], row 0 at the top (the camera's up side) and col 0 on the left as seen looking
+along the view direction (CONVENTIONS.md).
+
+On the image plane at unit distance in front of the pinhole, a direction d (from the pinhole
+towards the scene) lands at u = d.right / d.forward, v = d.up / d.forward. A pixel's value is
+the average radiance over its area a on that plane. A point source of intensity J [power/sr]
+at distance r, seen at angle alpha from the optical axis, therefore adds J / (r^2 Omega) to
+its pixel, with Omega = a cos^3(alpha) the pixel's solid angle in that direction (seed paper
+Eqs. (37)-(39) with the box-filter detector response W_d = 1 / Omega).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import xarray as xr
+from numba import njit
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole perspective camera (positions in km, field of view in degrees)."""
+
+    position: tuple[float, float, float]
+    lookat: tuple[float, float, float]
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    fov: float = 40.0
+    nrows: int = 76
+    ncols: int = 76
+
+    def __post_init__(self) -> None:
+        forward = np.subtract(self.lookat, self.position)
+        if not np.all(np.isfinite(np.r_[self.position, self.lookat, self.up, self.fov])):
+            raise ValueError("camera position, lookat, up and fov must be finite")
+        if np.linalg.norm(forward) == 0.0:
+            raise ValueError("camera lookat must differ from its position")
+        if np.linalg.norm(np.cross(forward, self.up)) <= 1e-9 * np.linalg.norm(forward):
+            raise ValueError("camera up vector must not be parallel to the view direction")
+        if not 0.0 < self.fov < 180.0:
+            raise ValueError(f"camera fov must be in (0, 180) degrees, got {self.fov}")
+        if self.nrows < 1 or self.ncols < 1:
+            raise ValueError("camera nrows and ncols must be positive")
+
+    def frame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Unit vectors (forward, right, up) of the camera frame."""
+        forward = np.subtract(self.lookat, self.position).astype(float)
+        forward /= np.linalg.norm(forward)
+        right = np.cross(forward, self.up)
+        right /= np.linalg.norm(right)
+        up = np.cross(right, forward)
+        return forward, right, up
+
+
+class CameraArrays(NamedTuple):
+    """Kernel-side cameras (all views share the image size)."""
+
+    position: np.ndarray  # float64[nview, 3], km
+    forward: np.ndarray  # float64[nview, 3]
+    right: np.ndarray  # float64[nview, 3]
+    up: np.ndarray  # float64[nview, 3]
+    half_width: np.ndarray  # float64[nview]: tan(fov / 2), image plane at unit distance
+    half_height: np.ndarray  # float64[nview]
+    pixel_area: np.ndarray  # float64[nview]: pixel area on the unit-distance image plane
+    nrows: int
+    ncols: int
+
+
+def camera_arrays(cameras: list[Camera]) -> CameraArrays:
+    """Gather cameras into kernel arrays; all cameras must share the image size."""
+    if not cameras:
+        raise ValueError("at least one camera is needed")
+    shapes = {(c.nrows, c.ncols) for c in cameras}
+    if len(shapes) != 1:
+        raise ValueError(f"all cameras must have the same image size, got {sorted(shapes)}")
+    nrows, ncols = shapes.pop()
+    frames = [c.frame() for c in cameras]
+    half_width = np.array([np.tan(np.radians(c.fov) / 2.0) for c in cameras])
+    half_height = half_width * nrows / ncols
+    return CameraArrays(
+        position=np.array([c.position for c in cameras], dtype=np.float64),
+        forward=np.array([f[0] for f in frames]),
+        right=np.array([f[1] for f in frames]),
+        up=np.array([f[2] for f in frames]),
+        half_width=half_width,
+        half_height=half_height,
+        pixel_area=(2.0 * half_width / ncols) * (2.0 * half_height / nrows),
+        nrows=nrows,
+        ncols=ncols,
+    )
+
+
+@njit(cache=True)
+def project(cams, view, px, py, pz):
+    """Pixel of camera ``view`` seeing the point (px, py, pz).
+
+    Returns ``(row, col, dx, dy, dz, inverse_r2_omega)``: the pixel (row = -1 when the point
+    is behind the camera or outside the image), the unit vector from the point towards the
+    pinhole, and 1 / (r^2 Omega_pixel) for that direction.
+    """
+    dx = px - cams.position[view, 0]
+    dy = py - cams.position[view, 1]
+    dz = pz - cams.position[view, 2]
+    depth = dx * cams.forward[view, 0] + dy * cams.forward[view, 1] + dz * cams.forward[view, 2]
+    if depth <= 0.0:
+        return -1, -1, 0.0, 0.0, 0.0, 0.0
+    u = (dx * cams.right[view, 0] + dy * cams.right[view, 1] + dz * cams.right[view, 2]) / depth
+    v = (dx * cams.up[view, 0] + dy * cams.up[view, 1] + dz * cams.up[view, 2]) / depth
+    hw = cams.half_width[view]
+    hh = cams.half_height[view]
+    if not (-hw <= u < hw and -hh < v <= hh):
+        return -1, -1, 0.0, 0.0, 0.0, 0.0
+    col = min(int((u + hw) / (2.0 * hw) * cams.ncols), cams.ncols - 1)
+    row = min(int((hh - v) / (2.0 * hh) * cams.nrows), cams.nrows - 1)
+    r = np.sqrt(dx * dx + dy * dy + dz * dz)
+    # r^2 * Omega = r^2 * a * cos^3(alpha) = a * depth^3 / r
+    inverse_r2_omega = r / (cams.pixel_area[view] * depth * depth * depth)
+    return row, col, -dx / r, -dy / r, -dz / r, inverse_r2_omega
+
+
+@njit(cache=True)
+def pixel_ray(cams, view, row, col, xi_u, xi_v):
+    """Unit direction from the pinhole through the image-plane point of a pixel.
+
+    (xi_u, xi_v) in [0, 1)^2 place the point uniformly over the pixel's area, so that the
+    average over them is the box-filtered pixel value.
+    """
+    hw = cams.half_width[view]
+    hh = cams.half_height[view]
+    u = -hw + (col + xi_u) * (2.0 * hw / cams.ncols)
+    v = hh - (row + xi_v) * (2.0 * hh / cams.nrows)
+    dx = cams.forward[view, 0] + u * cams.right[view, 0] + v * cams.up[view, 0]
+    dy = cams.forward[view, 1] + u * cams.right[view, 1] + v * cams.up[view, 1]
+    dz = cams.forward[view, 2] + u * cams.right[view, 2] + v * cams.up[view, 2]
+    norm = np.sqrt(dx * dx + dy * dy + dz * dz)
+    return dx / norm, dy / norm, dz / norm
+
+
+def cameras_dataset(cameras: list[Camera]) -> xr.Dataset:
+    """Cameras as a Dataset over ``view`` (netCDF-ready, CF attributes)."""
+    xyz = ["x", "y", "z"]
+    ds = xr.Dataset(
+        {
+            "position": (("view", "xyz"), np.array([c.position for c in cameras], float)),
+            "lookat": (("view", "xyz"), np.array([c.lookat for c in cameras], float)),
+            "up": (("view", "xyz"), np.array([c.up for c in cameras], float)),
+            "fov": ("view", np.array([c.fov for c in cameras], float)),
+            "nrows": ("view", np.array([c.nrows for c in cameras], np.int32)),
+            "ncols": ("view", np.array([c.ncols for c in cameras], np.int32)),
+        },
+        coords={"view": np.arange(len(cameras)), "xyz": xyz},
+    )
+    ds["position"].attrs.update(units="km", long_name="pinhole position")
+    ds["lookat"].attrs.update(units="km", long_name="point the camera looks at")
+    ds["up"].attrs.update(units="1", long_name="up vector of the image")
+    ds["fov"].attrs.update(units="degree", long_name="full field of view across the columns")
+    ds["nrows"].attrs.update(units="1", long_name="image rows")
+    ds["ncols"].attrs.update(units="1", long_name="image columns")
+    ds["view"].attrs.update(long_name="camera index")
+    return ds
+
+
+def cameras_from_dataset(ds: xr.Dataset) -> list[Camera]:
+    """The cameras stored in a Dataset written by :func:`cameras_dataset`."""
+    missing = [v for v in ("position", "lookat", "up", "fov", "nrows", "ncols") if v not in ds]
+    if missing:
+        raise ValueError(f"camera variables missing: {', '.join(missing)}")
+    return [
+        Camera(
+            position=tuple(float(v) for v in ds["position"].values[i]),
+            lookat=tuple(float(v) for v in ds["lookat"].values[i]),
+            up=tuple(float(v) for v in ds["up"].values[i]),
+            fov=float(ds["fov"].values[i]),
+            nrows=int(ds["nrows"].values[i]),
+            ncols=int(ds["ncols"].values[i]),
+        )
+        for i in range(ds.sizes["view"])
+    ]
+
+
+def ring_cameras(
+    target: tuple[float, float, float],
+    *,
+    distance: float,
+    zenith: float,
+    azimuths: list[float] | np.ndarray,
+    fov: float,
+    npix: int,
+    include_zenith: bool = True,
+) -> list[Camera]:
+    """Cameras aimed at ``target`` from ``distance`` km: one at the zenith and a ring.
+
+    The ring cameras sit ``zenith`` degrees from the vertical at the given azimuths
+    (degrees from +x toward +y); their images have +z up. The zenith camera's image has
+    +y (north) up.
+    """
+    target_arr = np.asarray(target, dtype=float)
+    cams = []
+    if include_zenith:
+        cams.append(
+            Camera(
+                position=tuple(target_arr + [0.0, 0.0, distance]),
+                lookat=tuple(target_arr),
+                up=(0.0, 1.0, 0.0),
+                fov=fov,
+                nrows=npix,
+                ncols=npix,
+            )
+        )
+    th = np.radians(zenith)
+    for az in np.radians(np.asarray(azimuths, dtype=float)):
+        offset = distance * np.array([np.sin(th) * np.cos(az), np.sin(th) * np.sin(az), np.cos(th)])
+        up = (0.0, 0.0, 1.0) if zenith > 1e-6 else (0.0, 1.0, 0.0)
+        cams.append(
+            Camera(tuple(target_arr + offset), tuple(target_arr), up, fov=fov, nrows=npix, ncols=npix)
+        )
+    return cams
+
+
+def box_fitting_fov(
+    box_min: np.ndarray, box_max: np.ndarray, distance: float, margin: float = 1.05
+) -> float:
+    """Full field of view (degrees) in which a camera at ``distance`` from the box centre
+    sees the whole box from any direction (the box's circumscribed sphere, with a margin)."""
+    radius = 0.5 * float(np.linalg.norm(np.subtract(box_max, box_min)))
+    if radius >= distance:
+        raise ValueError("cameras must be farther from the box centre than its half-diagonal")
+    return float(2.0 * np.degrees(np.arcsin(min(margin * radius / distance, 1.0))))
+
+
+def nine_camera_set(
+    box_min: np.ndarray,
+    box_max: np.ndarray,
+    *,
+    distance: float = 2.0,
+    ring_zenith: float = 29.0,
+    npix: int = 76,
+    fov: float | None = None,
+) -> list[Camera]:
+    """The seed paper's nine cameras: zenith + eight on a ring, aimed at the box centre.
+
+    Ring at ``ring_zenith`` degrees from the zenith, azimuths 0, 45, ..., 315; all at
+    ``distance`` km from the box centre with ``npix`` x ``npix`` images. The field of view
+    defaults to one that frames the whole box (:func:`box_fitting_fov`).
+    """
+    centre = 0.5 * (np.asarray(box_min, float) + np.asarray(box_max, float))
+    if fov is None:
+        fov = box_fitting_fov(box_min, box_max, distance)
+    return ring_cameras(
+        tuple(centre),
+        distance=distance,
+        zenith=ring_zenith,
+        azimuths=np.arange(0.0, 360.0, 45.0),
+        fov=fov,
+        npix=npix,
+    )

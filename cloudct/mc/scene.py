@@ -1,0 +1,193 @@
+"""A scene: cameras, sun, boundary conditions and ground, with checks and netCDF form.
+
+The checks reject what would otherwise give silently wrong images: cameras inside the
+medium, cameras below a ground, cameras whose view misses the medium, and (periodic
+boundaries) cameras that see the slab out to the horizon, where infinitely many periodic
+images would be visible.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import xarray as xr
+
+from cloudct.mc.cameras import Camera, cameras_dataset, cameras_from_dataset, nine_camera_set
+from cloudct.mc.sun import Sun
+
+BOUNDARIES = ("open", "periodic")
+
+
+@dataclass(frozen=True)
+class Scene:
+    """What a render needs besides the medium.
+
+    ``ground_albedo`` is the albedo of a Lambertian ground at the bottom of the box, or None
+    for no ground (light leaving through the bottom is lost; cameras may look from below).
+    A black ground (0) and no ground give the same images from above. With ``open``
+    boundaries the ground is the box's bottom face; with ``periodic`` boundaries it is
+    horizontally infinite.
+    """
+
+    cameras: list[Camera]
+    sun: Sun = field(default_factory=Sun)
+    boundary: str = "open"
+    ground_albedo: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.boundary not in BOUNDARIES:
+            raise ValueError(f"boundary must be one of {BOUNDARIES}, got {self.boundary!r}")
+        if self.ground_albedo is not None and not 0.0 <= self.ground_albedo <= 1.0:
+            raise ValueError(f"ground_albedo must be in [0, 1], got {self.ground_albedo}")
+        if not self.cameras:
+            raise ValueError("a scene needs at least one camera")
+
+    @property
+    def periodic(self) -> bool:
+        """True for horizontally periodic boundaries."""
+        return self.boundary == "periodic"
+
+    def to_dataset(self) -> xr.Dataset:
+        """The scene as a netCDF-ready Dataset (cameras over ``view``, the rest as attrs)."""
+        ds = cameras_dataset(self.cameras)
+        ds.attrs.update(
+            title="cloudct scene",
+            Conventions="CF-1.8",
+            sun_zenith=self.sun.zenith,
+            sun_azimuth=self.sun.azimuth,
+            sun_azimuth_convention="direction towards the sun, degrees from +x toward +y",
+            boundary=self.boundary,
+            ground_albedo=-1.0 if self.ground_albedo is None else self.ground_albedo,
+            ground_albedo_note="-1 means no ground",
+        )
+        return ds
+
+    @classmethod
+    def from_dataset(cls, ds: xr.Dataset) -> Scene:
+        """The scene stored by :meth:`to_dataset`."""
+        missing = [a for a in ("sun_zenith", "sun_azimuth", "boundary") if a not in ds.attrs]
+        if missing:
+            raise ValueError(f"scene attributes missing: {', '.join(missing)}")
+        ground = float(ds.attrs.get("ground_albedo", -1.0))
+        return cls(
+            cameras=cameras_from_dataset(ds),
+            sun=Sun(float(ds.attrs["sun_zenith"]), float(ds.attrs["sun_azimuth"])),
+            boundary=str(ds.attrs["boundary"]),
+            ground_albedo=None if ground < 0.0 else ground,
+        )
+
+
+def single_cloud_scene(box_min: np.ndarray, box_max: np.ndarray) -> Scene:
+    """The seed paper's single-cloud scene geometry: nine 76x76 cameras at 2 km from the
+    box centre (zenith + ring at 29 degrees), sun at the zenith, open boundaries."""
+    return Scene(cameras=nine_camera_set(box_min, box_max), sun=Sun(0.0, 0.0), boundary="open")
+
+
+def _corner_rays(camera: Camera) -> np.ndarray:
+    """Unit directions through the four corners of the image."""
+    forward, right, up = camera.frame()
+    hw = np.tan(np.radians(camera.fov) / 2.0)
+    hh = hw * camera.nrows / camera.ncols
+    rays = np.array([forward + a * hw * right + b * hh * up for a in (-1, 1) for b in (-1, 1)])
+    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+
+def _pixel_rays(camera: Camera) -> np.ndarray:
+    """Unit directions through every pixel centre, shape (nrows * ncols, 3)."""
+    forward, right, up = camera.frame()
+    hw = np.tan(np.radians(camera.fov) / 2.0)
+    hh = hw * camera.nrows / camera.ncols
+    u = -hw + (np.arange(camera.ncols) + 0.5) * 2.0 * hw / camera.ncols
+    v = hh - (np.arange(camera.nrows) + 0.5) * 2.0 * hh / camera.nrows
+    uu, vv = np.meshgrid(u, v)
+    rays = forward + uu.reshape(-1, 1) * right + vv.reshape(-1, 1) * up
+    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+
+def _rays_hit_box(origin: np.ndarray, rays: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether any ray from ``origin`` meets the axis-aligned box [lo, hi] (slab test)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = (lo - origin) / rays
+        t1 = (hi - origin) / rays
+    near = np.where(np.isnan(t0), -np.inf, np.minimum(t0, t1)).max(axis=1)
+    far = np.where(np.isnan(t1), np.inf, np.maximum(t0, t1)).min(axis=1)
+    return bool(np.any((near <= far) & (far > 0.0)))
+
+
+def check_scene(scene: Scene, edges: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+    """Raise ValueError, naming the camera, for a scene that cannot be rendered right."""
+    lo = np.array([e[0] for e in edges])
+    hi = np.array([e[-1] for e in edges])
+    for i, cam in enumerate(scene.cameras):
+        pos = np.asarray(cam.position, float)
+        if scene.periodic:
+            if lo[2] <= pos[2] <= hi[2]:
+                raise ValueError(
+                    f"camera {i} at z = {pos[2]} km is inside the periodic medium "
+                    f"(z from {lo[2]} to {hi[2]} km)"
+                )
+        elif np.all((lo <= pos) & (pos <= hi)):
+            raise ValueError(f"camera {i} at {tuple(pos)} km is inside the medium's box")
+        if scene.ground_albedo is not None and pos[2] < lo[2]:
+            raise ValueError(f"camera {i} is below the ground (z = {pos[2]} < {lo[2]} km)")
+        rays = _pixel_rays(cam)
+        if scene.periodic:
+            seen = np.any(np.sign(rays[:, 2]) == np.sign(lo[2] - pos[2]))
+        else:
+            seen = _rays_hit_box(pos, rays, lo, hi) or _box_corner_in_view(cam, lo, hi)
+        if not seen:
+            raise ValueError(f"camera {i} does not see the medium: no pixel looks at the box")
+
+
+def _box_corner_in_view(camera: Camera, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether a corner of the box projects into the image (a box smaller than a pixel)."""
+    forward, right, up = camera.frame()
+    hw = np.tan(np.radians(camera.fov) / 2.0)
+    hh = hw * camera.nrows / camera.ncols
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])
+    d = corners - np.asarray(camera.position, float)
+    depth = d @ forward
+    ok = depth > 0
+    u = (d @ right)[ok] / depth[ok]
+    v = (d @ up)[ok] / depth[ok]
+    return bool(np.any((np.abs(u) < hw) & (np.abs(v) < hh)))
+
+
+def periodic_copy_ranges(
+    scene: Scene, edges: tuple[np.ndarray, np.ndarray, np.ndarray]
+) -> np.ndarray:
+    """Range of periodic images (i0, i1, j0, j1) each camera can see, int64[nview, 4].
+
+    The part of the slab inside a camera's view is the convex hull of where its four
+    corner rays meet the slab's bottom and top planes; the box copies i * Lx, j * Ly that
+    overlap it are the ones a local estimate must visit. Open boundaries: only (0, 0).
+    """
+    ranges = np.zeros((len(scene.cameras), 4), dtype=np.int64)
+    if not scene.periodic:
+        return ranges
+    xe, ye, ze = edges
+    lx, ly = xe[-1] - xe[0], ye[-1] - ye[0]
+    for k, cam in enumerate(scene.cameras):
+        pos = np.asarray(cam.position, float)
+        rays = _corner_rays(cam)
+        points = []
+        for zp in (ze[0], ze[-1]):
+            t = (zp - pos[2]) / rays[:, 2]
+            if np.any(~np.isfinite(t)) or np.any(t <= 0.0):
+                raise ValueError(
+                    f"camera {k} sees the periodic slab out to the horizon; narrow its field "
+                    "of view or tilt it towards the slab"
+                )
+            points.append(pos[:2] + t[:, None] * rays[:, :2])
+        pts = np.concatenate(points)
+        # copy i holds x + i Lx for x in [x0, x1): it meets [xmin, xmax] for
+        # ceil((xmin - x1) / Lx) <= i <= floor((xmax - x0) / Lx)
+        ranges[k] = (
+            np.ceil((pts[:, 0].min() - xe[-1]) / lx),
+            np.floor((pts[:, 0].max() - xe[0]) / lx),
+            np.ceil((pts[:, 1].min() - ye[-1]) / ly),
+            np.floor((pts[:, 1].max() - ye[0]) / ly),
+        )
+    return ranges

@@ -1,0 +1,205 @@
+"""Traversal of the rectilinear voxel grid (3D DDA) with exact optical depths.
+
+The extinction is piecewise constant in each voxel, so the optical depth along a ray is
+the sum over the crossed voxels of extinction x length inside the voxel, and the free-flight
+distance of Eq. (32) is found exactly by inverting that sum inside the voxel where it
+reaches the sampled optical depth.
+
+One routine, :func:`march`, walks a ray voxel by voxel; free flights, transmittances to
+cameras and to the sun all call it. With ``periodic`` boundaries a ray that leaves through
+a side face re-enters through the opposite face; it ends when it leaves through the top
+or reaches the bottom. With ``open`` boundaries it ends when it leaves through any face.
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+from cloudct.physics.mixing import total_extinction
+
+#: March outcomes.
+STOPPED = 0  # the sampled optical depth was reached inside the medium
+LEFT = 1  # left the box through the top (or, with open boundaries, any side face)
+BOTTOM = 2  # reached the bottom face of the box (the ground, where there is one)
+
+INF = math.inf
+
+
+@njit(cache=True)
+def locate(edges, p, d):
+    """Index of the cell of ``edges`` holding coordinate ``p``, ties broken by direction ``d``.
+
+    A point exactly on an inner edge belongs to the cell the ray is about to enter.
+    The result is clamped to the valid range, so points on the outer faces of the box map to
+    the boundary cells.
+    """
+    n = edges.size - 1
+    lo = 0
+    hi = n
+    # binary search for the last edge <= p
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if edges[mid] <= p:
+            lo = mid
+        else:
+            hi = mid
+    i = lo
+    if p == edges[i] and d < 0.0 and i > 0:
+        i -= 1
+    if i > n - 1:
+        i = n - 1
+    return i
+
+
+@njit(cache=True)
+def _distance_to_face(edges, i, p, d):
+    """Distance along a unit-direction component ``d`` from ``p`` to the next face of cell i."""
+    if d > 0.0:
+        return max((edges[i + 1] - p) / d, 0.0)
+    if d < 0.0:
+        return max((edges[i] - p) / d, 0.0)
+    return INF
+
+
+@njit(cache=True)
+def march(grid, px, py, pz, ux, uy, uz, ix, iy, iz, tau_target, periodic):
+    """Walk from (px, py, pz) in voxel (ix, iy, iz) along the unit vector (ux, uy, uz).
+
+    The walk stops where the optical depth reaches ``tau_target`` (use ``inf`` for a
+    transmittance), or where the ray leaves the medium.
+
+    Returns ``(status, px, py, pz, ix, iy, iz, tau)`` with status :data:`STOPPED`,
+    :data:`LEFT` or :data:`BOTTOM`; the position and voxel are where the walk ended (for
+    LEFT and BOTTOM, on the face it left through) and ``tau`` the optical depth travelled.
+    """
+    xe = grid.x_edges
+    ye = grid.y_edges
+    ze = grid.z_edges
+    nx = xe.size - 1
+    ny = ye.size - 1
+    nz = ze.size - 1
+    tau = 0.0
+    while True:
+        tx = _distance_to_face(xe, ix, px, ux)
+        ty = _distance_to_face(ye, iy, py, uy)
+        tz = _distance_to_face(ze, iz, pz, uz)
+        t = min(tx, min(ty, tz))
+        beta = total_extinction(grid, ix, iy, iz)
+        dtau = beta * t
+        if tau + dtau >= tau_target:
+            s = (tau_target - tau) / beta
+            return STOPPED, px + s * ux, py + s * uy, pz + s * uz, ix, iy, iz, tau_target
+        tau += dtau
+        px += t * ux
+        py += t * uy
+        pz += t * uz
+        if t == tx:
+            if ux > 0.0:
+                ix += 1
+                px = xe[ix]
+                if ix == nx:
+                    if not periodic:
+                        return LEFT, px, py, pz, ix - 1, iy, iz, tau
+                    ix = 0
+                    px = xe[0]
+            else:
+                px = xe[ix]
+                ix -= 1
+                if ix < 0:
+                    if not periodic:
+                        return LEFT, px, py, pz, 0, iy, iz, tau
+                    ix = nx - 1
+                    px = xe[nx]
+        elif t == ty:
+            if uy > 0.0:
+                iy += 1
+                py = ye[iy]
+                if iy == ny:
+                    if not periodic:
+                        return LEFT, px, py, pz, ix, iy - 1, iz, tau
+                    iy = 0
+                    py = ye[0]
+            else:
+                py = ye[iy]
+                iy -= 1
+                if iy < 0:
+                    if not periodic:
+                        return LEFT, px, py, pz, ix, 0, iz, tau
+                    iy = ny - 1
+                    py = ye[ny]
+        else:
+            if uz > 0.0:
+                iz += 1
+                pz = ze[iz]
+                if iz == nz:
+                    return LEFT, px, py, pz, ix, iy, nz - 1, tau
+            else:
+                pz = ze[iz]
+                iz -= 1
+                if iz < 0:
+                    return BOTTOM, px, py, pz, ix, iy, 0, tau
+
+
+@njit(cache=True)
+def optical_depth_to_exit(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic):
+    """Optical depth from a point inside the medium along a direction until it leaves."""
+    return march(grid, px, py, pz, ux, uy, uz, ix, iy, iz, INF, periodic)[7]
+
+
+@njit(cache=True)
+def locate_point(grid, px, py, pz, ux, uy, uz):
+    """Voxel of a point inside (or on the surface of) the box, for a ray along (ux, uy, uz)."""
+    return (
+        locate(grid.x_edges, px, ux),
+        locate(grid.y_edges, py, uy),
+        locate(grid.z_edges, pz, uz),
+    )
+
+
+@njit(cache=True)
+def wrap_into_box(grid, px, py):
+    """Horizontal position folded into the box, for periodic boundaries."""
+    x0 = grid.x_edges[0]
+    lx = grid.x_edges[-1] - x0
+    y0 = grid.y_edges[0]
+    ly = grid.y_edges[-1] - y0
+    px = x0 + (px - x0) % lx
+    py = y0 + (py - y0) % ly
+    return px, py
+
+
+@njit(cache=True)
+def ray_box_entry(grid, ox, oy, oz, ux, uy, uz, periodic):
+    """Distance along a ray from outside the medium to where it enters it, or -1 if never.
+
+    With open boundaries the medium is the box; with periodic boundaries it is the
+    horizontally infinite slab between the bottom and top of the box.
+    """
+    t_near = 0.0
+    t_far = INF
+    if periodic:
+        naxes = 1
+    else:
+        naxes = 3
+    for a in range(3 - naxes, 3):
+        if a == 0:
+            o, u, lo, hi = ox, ux, grid.x_edges[0], grid.x_edges[-1]
+        elif a == 1:
+            o, u, lo, hi = oy, uy, grid.y_edges[0], grid.y_edges[-1]
+        else:
+            o, u, lo, hi = oz, uz, grid.z_edges[0], grid.z_edges[-1]
+        if u == 0.0:
+            if o < lo or o > hi:
+                return -1.0
+        else:
+            t0 = (lo - o) / u
+            t1 = (hi - o) / u
+            if t0 > t1:
+                t0, t1 = t1, t0
+            t_near = max(t_near, t0)
+            t_far = min(t_far, t1)
+    if t_near > t_far or t_far <= 0.0:
+        return -1.0
+    return t_near

@@ -1,0 +1,97 @@
+"""Mixing of particle types in a voxel, seed paper Eqs. (2)-(5), as numba functions.
+
+Each of the ``ntype`` particle types j has, per voxel, an extinction beta^(j) and a
+single-scattering albedo w^(j); its scattering coefficient is beta_s^(j) = w^(j) beta^(j)
+(Eq. 3). Type 0 is air (Rayleigh), type 1 cloud; nothing here assumes ntype = 2.
+
+Where a voxel scatters nothing (beta_s = 0), :func:`mixture_phase_function` returns the
+phase function of type 0 and :func:`choose_particle_type` returns 0. Any density would do
+there, since it is always multiplied by beta_s = 0 (or by an effective albedo of 0), and
+this choice keeps the mixture a normalised density that the type choice samples exactly.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+from cloudct.physics.phase import PhaseBank, phase_function
+
+
+class OpticalGrid(NamedTuple):
+    """Piecewise-constant optical properties of every particle type on the voxel grid."""
+
+    x_edges: np.ndarray  # float64[nx + 1], km
+    y_edges: np.ndarray  # float64[ny + 1], km
+    z_edges: np.ndarray  # float64[nz + 1], km
+    extinction: np.ndarray  # float64[ntype, nx, ny, nz], 1/km; type 0 air, 1 cloud
+    albedo: np.ndarray  # float64[ntype, nx, ny, nz]
+    phase_index: np.ndarray  # int32[ntype, nx, ny, nz], row of the PhaseBank
+
+
+@njit(cache=True)
+def total_extinction(grid: OpticalGrid, ix: int, iy: int, iz: int) -> float:
+    """beta = sum_j beta^(j), Eq. (2) [1/km]."""
+    beta = 0.0
+    for j in range(grid.extinction.shape[0]):
+        beta += grid.extinction[j, ix, iy, iz]
+    return beta
+
+
+@njit(cache=True)
+def scattering_coefficient(grid: OpticalGrid, ix: int, iy: int, iz: int) -> float:
+    """beta_s = sum_j w^(j) beta^(j), Eqs. (2)-(3) [1/km]."""
+    beta_s = 0.0
+    for j in range(grid.extinction.shape[0]):
+        beta_s += grid.albedo[j, ix, iy, iz] * grid.extinction[j, ix, iy, iz]
+    return beta_s
+
+
+@njit(cache=True)
+def effective_albedo(grid: OpticalGrid, ix: int, iy: int, iz: int) -> float:
+    """w = sum_j w^(j) beta^(j) / beta = beta_s / beta, Eq. (4); 0 where beta = 0."""
+    beta = total_extinction(grid, ix, iy, iz)
+    if beta <= 0.0:
+        return 0.0
+    return scattering_coefficient(grid, ix, iy, iz) / beta
+
+
+@njit(cache=True)
+def mixture_phase_function(
+    grid: OpticalGrid, bank: PhaseBank, ix: int, iy: int, iz: int, mu: float
+) -> float:
+    """f_p = sum_j beta_s^(j) f_p^(j)(mu) / beta_s, Eq. (5) [1/sr]; type 0's where beta_s = 0."""
+    num = 0.0
+    beta_s = 0.0
+    for j in range(grid.extinction.shape[0]):
+        bs = grid.albedo[j, ix, iy, iz] * grid.extinction[j, ix, iy, iz]
+        if bs > 0.0:
+            num += bs * phase_function(bank, grid.phase_index[j, ix, iy, iz], mu)
+            beta_s += bs
+    if beta_s <= 0.0:
+        return phase_function(bank, grid.phase_index[0, ix, iy, iz], mu)
+    return num / beta_s
+
+
+@njit(cache=True)
+def choose_particle_type(grid: OpticalGrid, ix: int, iy: int, iz: int, u: float) -> int:
+    """Particle type that scatters, with probability beta_s^(j) / beta_s, for u in [0, 1).
+
+    With the path weight multiplied by the effective albedo (Eq. 4), a direction drawn from
+    the chosen type's phase function follows the mixture of Eq. (5) exactly. (The seed
+    paper's Eq. (33), beta^(j) / beta, is the same choice only when all albedos are equal.)
+    Returns 0 where beta_s = 0; never returns a type with beta_s^(j) = 0 otherwise.
+    """
+    target = u * scattering_coefficient(grid, ix, iy, iz)
+    cumulative = 0.0
+    last = 0
+    for j in range(grid.extinction.shape[0]):
+        bs = grid.albedo[j, ix, iy, iz] * grid.extinction[j, ix, iy, iz]
+        if bs > 0.0:
+            cumulative += bs
+            last = j
+            if target < cumulative:
+                return j
+    return last

@@ -1,0 +1,222 @@
+"""From a medium Dataset to optical properties, and from those to the kernels' arrays.
+
+:func:`to_optical` turns a microphysical medium (``lwc``, ``reff``) into an optical one
+through a Mie table (:mod:`cloudct.physics.mie`):
+
+- ``cloud_extinction = lwc * ext_per_lwc(reff)``, linear interpolation in r_eff;
+- ``cloud_albedo``: the table's albedo, linear interpolation in r_eff;
+- phase ``"mie"``: ``cloud_phase`` holds the table rows of the r_eff nearest to those of the
+  cloudy cells (only the rows in use, their r_eff in the coordinate ``cloud_phase_reff``) and
+  ``cloud_phase_index`` the row of each cell; phase ``"hg"``: ``cloud_g`` = g.
+
+:func:`kernel_arrays` builds the :class:`OpticalGrid` and :class:`PhaseBank` of the numba
+kernels: type 0 air (Rayleigh, bank row 0), type 1 cloud (one bank row per distinct HG g,
+or one per tabulated phase function).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import xarray as xr
+
+from cloudct.medium import (
+    DEFAULT_VEFF,
+    cell_edges,
+    is_microphysical,
+    is_optical,
+    optical_medium,
+    validate_medium,
+)
+from cloudct.physics.mie import DEFAULT_WAVELENGTH
+from cloudct.physics.mie import mie_table as load_mie_table
+from cloudct.physics.mixing import OpticalGrid
+from cloudct.physics.phase import PhaseBank, phase_bank
+
+GRID = ("x", "y", "z")
+
+
+def _single_veff(medium: xr.Dataset) -> float:
+    """The droplet effective variance of the cloud, which must be one value for a table."""
+    if "veff" not in medium:
+        return DEFAULT_VEFF
+    veff = medium["veff"].broadcast_like(medium["lwc"]).values[medium["lwc"].values > 0]
+    values = np.unique(veff)
+    if values.size > 1:
+        raise NotImplementedError(
+            f"veff varies over the cloud ({values.min():g}..{values.max():g}); "
+            "the Mie optics use one table, i.e. one veff"
+        )
+    return float(values[0]) if values.size else DEFAULT_VEFF
+
+
+def _nearest(table_reff: np.ndarray, reff: np.ndarray) -> np.ndarray:
+    """Index of the nearest table radius for each r_eff (inside the table range)."""
+    i = np.clip(np.searchsorted(table_reff, reff), 1, table_reff.size - 1)
+    lower_is_nearer = reff - table_reff[i - 1] <= table_reff[i] - reff
+    return np.where(lower_is_nearer, i - 1, i)
+
+
+def to_optical(
+    medium: xr.Dataset,
+    mie_table: xr.Dataset | None = None,
+    *,
+    wavelength: float | None = None,
+    phase: str = "mie",
+    g: float = 0.85,
+) -> xr.Dataset:
+    """Optical medium (cloud extinction, albedo, phase function) from a microphysical one.
+
+    Args:
+        medium: a medium Dataset with ``lwc`` [g m-3] and ``reff`` [micron]. A medium that
+            is already optical only (no ``lwc``/``reff``) is returned unchanged.
+        mie_table: a table from :func:`cloudct.physics.mie.mie_table`; by default the table
+            for ``wavelength`` and the medium's ``veff`` (default 0.1).
+        wavelength: [micron]; default 0.672, or the table's when ``mie_table`` is given
+            (a different value is an error).
+        phase: ``"mie"`` for the tabulated Mie phase functions (nearest table r_eff per
+            cell), ``"hg"`` for Henyey-Greenstein with asymmetry parameter ``g``.
+        g: HG asymmetry parameter, used with ``phase="hg"``.
+
+    Returns:
+        A validated optical medium on the same grid, keeping the air, the microphysics and
+        the attributes, with the ``wavelength`` attribute set.
+
+    Raises:
+        ValueError: r_eff outside the table's range where lwc > 0, an unknown ``phase``, or
+            a wavelength or veff that differs from the given table's.
+    """
+    if not is_microphysical(medium):
+        if is_optical(medium):
+            return medium
+        raise ValueError("medium has neither lwc + reff nor an optical cloud description")
+    if phase not in ("mie", "hg"):
+        raise ValueError(f"phase must be 'mie' or 'hg', got {phase!r}")
+    validate_medium(medium)
+    veff = _single_veff(medium)
+    if mie_table is None:
+        mie_table = load_mie_table(
+            wavelength=DEFAULT_WAVELENGTH if wavelength is None else wavelength, veff=veff
+        )
+    table_wavelength = float(mie_table.attrs["wavelength"])
+    if wavelength is not None and not np.isclose(wavelength, table_wavelength):
+        raise ValueError(f"wavelength {wavelength} differs from the table's {table_wavelength}")
+    if not np.isclose(veff, float(mie_table.attrs["veff"])):
+        raise ValueError(f"medium veff {veff} differs from the table's {mie_table.attrs['veff']}")
+
+    lwc = medium["lwc"].transpose(*GRID).values
+    reff = medium["reff"].transpose(*GRID).values
+    table_reff = mie_table["reff"].values
+    cloudy = lwc > 0
+    outside = cloudy & ((reff < table_reff[0]) | (reff > table_reff[-1]))
+    if np.any(outside):
+        raise ValueError(
+            f"{int(outside.sum())} cloudy cells have reff outside the Mie table's range "
+            f"{table_reff[0]:g}..{table_reff[-1]:g} micron (found "
+            f"{reff[outside].min():g}..{reff[outside].max():g})"
+        )
+    # clear cells (lwc = 0) get the optics at the clipped r_eff: their extinction is 0
+    r = np.clip(reff, table_reff[0], table_reff[-1])
+    extinction = lwc * np.interp(r, table_reff, mie_table["ext_per_lwc"].values)
+    albedo = np.interp(r, table_reff, mie_table["albedo"].values)
+
+    if phase == "hg":
+        phase_args = {"cloud_g": g}
+        description = f"Henyey-Greenstein phase function, g = {g:g}"
+    else:
+        nearest = _nearest(table_reff, r)
+        rows, inverse = np.unique(nearest[cloudy], return_inverse=True)
+        if rows.size == 0:
+            rows = nearest.ravel()[:1]
+        index = np.zeros(lwc.shape, dtype=np.int32)
+        index[cloudy] = inverse
+        phase_args = {
+            "cloud_phase": (mie_table["phase"].values[rows], mie_table["scattering_angle"].values),
+            "cloud_phase_index": index,
+        }
+        description = "Mie phase functions of the nearest table reff"
+
+    optical = optical_medium(
+        medium["x"].values,
+        medium["y"].values,
+        medium["z"].values,
+        extinction,
+        cloud_albedo=albedo,
+        air_extinction=medium["air_extinction"],
+        air_albedo=float(medium["air_albedo"]),
+        z_bounds=medium["z_bounds"].values if "z_bounds" in medium else None,
+        wavelength=table_wavelength,
+        **phase_args,
+    )
+    if phase == "mie":
+        optical = optical.assign_coords(
+            cloud_phase_reff=(
+                "phase_table",
+                table_reff[rows],
+                {"units": "micron", "long_name": "effective radius of each phase table row"},
+            )
+        )
+    for name in ("lwc", "reff", "veff"):
+        if name in medium:
+            optical[name] = medium[name]
+    optical.attrs = {
+        **medium.attrs,
+        "Conventions": "CF-1.8",
+        "wavelength": table_wavelength,
+        "optics": f"Mie table ({mie_table.attrs.get('mie_code', 'unknown code')}), "
+        f"veff = {veff:g}; {description}",
+    }
+    validate_medium(optical)
+    return optical
+
+
+def _on_grid(da: xr.DataArray, template: xr.DataArray) -> np.ndarray:
+    """A scalar, z-profile or 3D variable broadcast to (x, y, z)."""
+    return da.broadcast_like(template).transpose(*GRID).values
+
+
+def kernel_arrays(optical_medium: xr.Dataset) -> tuple[OpticalGrid, PhaseBank]:
+    """The numba kernels' view of an optical medium.
+
+    Args:
+        optical_medium: a medium with an optical cloud description (see :func:`to_optical`).
+
+    Returns:
+        ``(grid, bank)``. Type 0 is air: ``air_extinction`` broadcast to 3D, ``air_albedo``,
+        bank row 0 (Rayleigh). Type 1 is cloud: ``cloud_extinction``, ``cloud_albedo`` and
+        either one HG bank row per distinct ``cloud_g`` value or one tabulated row per row
+        of ``cloud_phase`` (bank row 1 + ``cloud_phase_index``). Arrays are C-contiguous
+        float64 (int32 phase indices).
+
+    Raises:
+        ValueError: the medium has no optical cloud description.
+    """
+    ds = optical_medium
+    if not is_optical(ds):
+        raise ValueError("kernel_arrays needs an optical medium: convert it with to_optical")
+    validate_medium(ds)
+    x_edges, y_edges, z_edges = cell_edges(ds)
+    cloud = ds["cloud_extinction"].transpose(*GRID)
+    shape = cloud.shape
+
+    entries: list[tuple] = [("rayleigh",)]
+    phase_index = np.zeros((2, *shape), dtype=np.int32)
+    if "cloud_phase" in ds:
+        angles = ds["scattering_angle"].values
+        entries += [("tabulated", angles, row) for row in ds["cloud_phase"].values]
+        phase_index[1] = 1 + ds["cloud_phase_index"].transpose(*GRID).values
+    else:
+        gs, inverse = np.unique(_on_grid(ds["cloud_g"], cloud), return_inverse=True)
+        entries += [("hg", gv) for gv in gs]
+        phase_index[1] = 1 + inverse.reshape(shape)
+
+    extinction = np.stack([_on_grid(ds["air_extinction"], cloud), cloud.values])
+    albedo = np.stack([_on_grid(ds["air_albedo"], cloud), _on_grid(ds["cloud_albedo"], cloud)])
+    grid = OpticalGrid(
+        x_edges=np.ascontiguousarray(x_edges, dtype=np.float64),
+        y_edges=np.ascontiguousarray(y_edges, dtype=np.float64),
+        z_edges=np.ascontiguousarray(z_edges, dtype=np.float64),
+        extinction=np.ascontiguousarray(extinction, dtype=np.float64),
+        albedo=np.ascontiguousarray(albedo, dtype=np.float64),
+        phase_index=np.ascontiguousarray(phase_index),
+    )
+    return grid, phase_bank(entries)
