@@ -195,8 +195,9 @@ def check_orientation(quick):
         r_mc, c_mc = (w * rr).sum() / w.sum(), (w * cc).sum() / w.sum()
         r_ex, c_ex = project(cam, blob)
         print(f"  {cam['name']:15s}: blob centroid (row, col) = ({r_mc:5.1f}, {c_mc:5.1f}), "
-              f"expected ({r_ex:5.1f}, {c_ex:5.1f}); max radiance {img.max():.3f} "
-              f"(white plate 1/pi = {1 / np.pi:.3f})")
+              f"expected ({r_ex:5.1f}, {c_ex:5.1f}); mirrored would be col "
+              f"{cam['ncols'] - c_ex:5.1f} / row {cam['nrows'] - r_ex:5.1f}; blob radiance "
+              f"{img[w > 0].mean():.3f} (white plate 1/pi = {1 / np.pi:.3f})")
     return out
 
 
@@ -275,7 +276,10 @@ def check_timing(spp, threads):
           f"{out['first_render_s']:.2f}s, second {out['second_render_s']:.2f}s -> JIT "
           f"{out['compile_s']:.2f}s; render 9 views x {spp} spp: {out['render_s']:.2f}s = "
           f"{out['render_s'] / spp * 1e3:.1f} ms per spp (all 9 views), "
-          f"{out['render_s'] / (spp * im.size) * 1e9:.0f} ns per path")
+          f"{out['render_s'] / (spp * im.size) * 1e9:.0f} ns per path; CPU time "
+          f"{out['render_cpu_s']:.1f}s = {out['render_cpu_s'] / spp * 1e3:.0f} CPU-ms per spp "
+          f"(wall/CPU ratio shows contention: ideal {1 / threads:.2f}, seen "
+          f"{out['render_s'] / out['render_cpu_s']:.2f})")
     print("  view means:", np.array2string(im.mean(axis=(1, 2)), precision=4))
     return out
 

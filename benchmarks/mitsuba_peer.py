@@ -37,10 +37,10 @@ Scene mapping (units: km and 1/km throughout, Mitsuba ``scale`` = 1):
   end only by leaving the box (their weight decays as albedo**n). Mitsuba's roulette survives with
   q = min(max(throughput), 0.95) and is applied on every loop iteration (null collisions too):
   unbiased in expectation, but for albedo ~1 it reweights by 0.95**-k, a heavy-tailed estimator
-  that in practice truncates long paths. With rr_depth=1000 a tau=100 conservative slab read 4 %
-  low (0.319 vs 0.333 with rr_depth=1e5; theory 0.330). Shadow rays use ratio tracking against
-  the medium's single global majorant max(sigma_t) (Mitsuba 3 has no majorant grid), so the cost
-  grows with the densest voxel, not the mean extinction.
+  that in practice truncates long paths. With rr_depth=1000 a tau=100 conservative slab read
+  3-4 % low (0.316-0.319; theory 0.330, no roulette 0.332 +- 0.001). Shadow rays use ratio
+  tracking against the medium's single global majorant max(sigma_t) (Mitsuba 3 has no majorant
+  grid), so the cost grows with the densest voxel, not the mean extinction.
 * ``perspective`` sensor, ``fov_axis`` 'x' (fov = full angle across the columns), ``to_world`` =
   look_at(position, lookat, up), ``hdrfilm`` (luminance) with a ``box`` reconstruction filter of
   radius 0.5 px: every sample lands in its own pixel, so a pixel is the area average over the

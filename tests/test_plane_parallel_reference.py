@@ -21,8 +21,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.integrate import quad
-
 from reference.plane_parallel import (
     henyey_greenstein,
     isotropic,
@@ -31,6 +29,7 @@ from reference.plane_parallel import (
     slab_fluxes,
     slab_radiances,
 )
+from scipy.integrate import quad
 
 MIX_085 = rayleigh_hg_mixture(0.3, 0.7, 0.85)  # bs_Rayleigh = 0.3, bs_HG = 0.7, g = 0.85
 
@@ -52,8 +51,14 @@ def _single_scattering(tau, omega, phase, mu0, phi0_deg, theta_v, phi_v):
     cos_r = np.einsum("i,i...->...", sun_travel, up)
     cos_t = np.einsum("i,i...->...", sun_travel, down)
     refl = omega * phase(cos_r) * mu0 / (mu0 + mu) * (1.0 - np.exp(-tau * (1 / mu0 + 1 / mu)))
-    trans = omega * phase(cos_t) * mu0 / (mu0 - mu) * (np.exp(-tau / mu0) - np.exp(-tau / mu))
-    return refl, trans
+    equal = np.isclose(mu, mu0, rtol=0.0, atol=1e-12)
+    mu_safe = np.where(equal, 0.5, mu)
+    geom_t = np.where(
+        equal,
+        tau / mu * np.exp(-tau / mu),  # limit mu -> mu0
+        mu0 / (mu0 - mu_safe) * (np.exp(-tau / mu0) - np.exp(-tau / mu_safe)),
+    )
+    return refl, omega * phase(cos_t) * geom_t
 
 
 # ---------------------------------------------------------------------------------------
@@ -61,24 +66,25 @@ def _single_scattering(tau, omega, phase, mu0, phi0_deg, theta_v, phi_v):
 
 @pytest.mark.parametrize("omega", [1.0, 0.6])
 def test_single_scattering_limit(omega: float) -> None:
-    tau, mu0, phi0 = 1e-3, np.cos(np.deg2rad(35.0)), 40.0
+    mu0, phi0 = np.cos(np.deg2rad(35.0)), 40.0
     # Includes exact backscatter (35, 40) and exact forward scattering (35, 220).
     theta_v = np.array([0.0, 20.0, 35.0, 35.0, 50.0, 65.0, 75.0, 10.0])
     phi_v = np.array([0.0, 100.0, 40.0, 220.0, 300.0, 180.0, 15.0, 250.0])
-    refl, trans = slab_radiances(tau, omega, MIX_085, mu0, phi0, theta_v, phi_v)
-    # Transmission at mu = mu0 is the limit; nudge the analytic formula off the pole.
-    theta_ss = np.where(theta_v == 35.0, 35.0 + 1e-7, theta_v)
-    refl_ss, _ = _single_scattering(tau, omega, MIX_085, mu0, phi0, theta_v, phi_v)
-    _, trans_ss = _single_scattering(tau, omega, MIX_085, mu0, phi0, theta_ss, phi_v)
-    # Multiple scattering adds O(tau) relative: ~ (tau / mu) * (forward/backward ratio).
-    np.testing.assert_allclose(refl, refl_ss, rtol=2e-3)
-    np.testing.assert_allclose(trans, trans_ss, rtol=2e-3)
-    # Shrinking tau tenfold shrinks the discrepancy about tenfold.
-    refl2, trans2 = slab_radiances(tau / 10, omega, MIX_085, mu0, phi0, theta_v, phi_v)
-    refl2_ss, _ = _single_scattering(tau / 10, omega, MIX_085, mu0, phi0, theta_v, phi_v)
-    _, trans2_ss = _single_scattering(tau / 10, omega, MIX_085, mu0, phi0, theta_ss, phi_v)
-    np.testing.assert_allclose(refl2, refl2_ss, rtol=2e-4)
-    np.testing.assert_allclose(trans2, trans2_ss, rtol=2e-4)
+
+    def excess(tau: float) -> np.ndarray:
+        """Relative excess of the full solution over single scattering (refl, trans)."""
+        refl, trans = slab_radiances(tau, omega, MIX_085, mu0, phi0, theta_v, phi_v)
+        refl_ss, trans_ss = _single_scattering(tau, omega, MIX_085, mu0, phi0, theta_v, phi_v)
+        return np.concatenate([refl / refl_ss - 1.0, trans / trans_ss - 1.0])
+
+    # Multiple scattering adds a positive O(tau) fraction (about 6 tau for this forward-peaked
+    # mixture, the reflection in particular being fed by forward-scattered light).
+    e3, e4, e5 = excess(1e-3), excess(1e-4), excess(1e-5)
+    assert np.all(e3 > 0) and np.all(e3 < 1e-2)
+    assert np.all(e5 > 0) and np.all(e5 < 1e-4)
+    # The excess is proportional to tau (up to tau*ln(tau) corrections), so the single-
+    # scattering part itself is exact: any error in it would not scale away like this.
+    np.testing.assert_allclose(e4 / e5, 10.0, rtol=0.07)
 
 
 @pytest.mark.parametrize("tau", [0.1, 1.0, 10.0])
@@ -105,8 +111,8 @@ def test_hemispheric_integral_of_radiance_matches_flux() -> None:
     flux_r = np.sum(w_mu[:, None] * mu[:, None] * refl) * d_phi
     flux_t = np.sum(w_mu[:, None] * mu[:, None] * trans) * d_phi
     fluxes = slab_fluxes(tau, omega, phase, mu0)
-    assert flux_r == pytest.approx(fluxes.reflected, rel=1e-4)
-    assert flux_t == pytest.approx(fluxes.transmitted_diffuse, rel=1e-4)
+    assert flux_r == pytest.approx(fluxes.reflected, rel=1e-7)
+    assert flux_t == pytest.approx(fluxes.transmitted_diffuse, rel=1e-7)
 
 
 def _chandrasekhar_h(mu: float, omega: float) -> float:
@@ -133,7 +139,9 @@ def test_h_function_reproduces_published_table() -> None:
     # Exact moment identity: ∫_0^1 H dmu = 2 (1 - sqrt(1 - omega)) / omega.
     omega = 0.9
     x, w = np.polynomial.legendre.leggauss(40)
-    alpha0 = sum(0.5 * wi * _chandrasekhar_h(0.5 * (xi + 1), omega) for xi, wi in zip(x, w))
+    alpha0 = sum(
+        0.5 * wi * _chandrasekhar_h(0.5 * (xi + 1), omega) for xi, wi in zip(x, w, strict=True)
+    )
     assert alpha0 == pytest.approx(2 * (1 - np.sqrt(1 - omega)) / omega, rel=1e-6)
 
 
@@ -154,23 +162,20 @@ def test_reciprocity(surface_albedo: float) -> None:
     """rho(mu, mu0, dphi) = pi I_r / mu0 is symmetric under mu <-> mu0 at fixed
     dphi = phi_v - phi0; for the (up-down symmetric) bare slab likewise pi I_t / mu0."""
     tau, omega = 1.5, 0.9
-    theta_a, theta_b = 25.0, 62.0
+
+    def rho(sun_zenith: float, view_zenith: float, phi0: float, dphi: float):
+        mu0 = np.cos(np.deg2rad(sun_zenith))
+        refl, trans = slab_radiances(
+            tau, omega, MIX_085, mu0, phi0, view_zenith, phi0 + dphi, surface_albedo
+        )
+        return np.pi * refl / mu0, np.pi * trans / mu0
+
     for dphi in (0.0, 70.0, 180.0):
-        r_ab, t_ab = slab_radiances(
-            tau, omega, MIX_085, np.cos(np.deg2rad(theta_a)), 10.0, theta_b, 10.0 + dphi,
-            surface_albedo,
-        )
-        r_ba, t_ba = slab_radiances(
-            tau, omega, MIX_085, np.cos(np.deg2rad(theta_b)), 123.0, theta_a, 123.0 + dphi,
-            surface_albedo,
-        )
-        assert r_ab / np.cos(np.deg2rad(theta_a)) == pytest.approx(
-            r_ba / np.cos(np.deg2rad(theta_b)), rel=1e-7
-        )
+        r_ab, t_ab = rho(25.0, 62.0, 10.0, dphi)
+        r_ba, t_ba = rho(62.0, 25.0, 123.0, dphi)
+        assert r_ab == pytest.approx(r_ba, rel=1e-10)
         if surface_albedo == 0.0:
-            assert t_ab / np.cos(np.deg2rad(theta_a)) == pytest.approx(
-                t_ba / np.cos(np.deg2rad(theta_b)), rel=1e-7
-            )
+            assert t_ab == pytest.approx(t_ba, rel=1e-10)
 
 
 @pytest.mark.parametrize("tau", [0.0, 1e-9])
@@ -208,7 +213,9 @@ def test_lambertian_coupling_formula() -> None:
     # S by Gauss quadrature in t with mu = t^2 (clusters nodes near the horizon).
     x, w = np.polynomial.legendre.leggauss(40)
     t, w_t = 0.5 * (x + 1.0), 0.5 * w
-    spherical_albedo = 2.0 * sum(2 * ti * wi * fluxes(ti**2)[0] for ti, wi in zip(t, w_t))
+    spherical_albedo = 2.0 * sum(
+        2 * ti * wi * fluxes(ti**2)[0] for ti, wi in zip(t, w_t, strict=True)
+    )
     e_surf = (mu0 * np.exp(-tau / mu0) + fluxes(mu0)[1]) / (1.0 - albedo * spherical_albedo)
     f_view = np.array([fluxes(m) for m in mu])
 
@@ -216,8 +223,8 @@ def test_lambertian_coupling_formula() -> None:
     r_a, t_a = slab_radiances(tau, omega, phase, mu0, phi0, theta_v, phi_v, albedo, n_streams=n)
     expected_r = r0 + albedo * e_surf / np.pi * (np.exp(-tau / mu) + f_view[:, 1] / mu)
     expected_t = t0 + albedo * e_surf / np.pi * f_view[:, 0] / mu
-    np.testing.assert_allclose(r_a, expected_r, rtol=1e-5)
-    np.testing.assert_allclose(t_a, expected_t, rtol=1e-5)
+    np.testing.assert_allclose(r_a, expected_r, rtol=1e-7)
+    np.testing.assert_allclose(t_a, expected_t, rtol=1e-7)
 
 
 @pytest.mark.parametrize(("tau", "omega"), [(0.1, 0.5), (1.0, 0.9), (10.0, 1.0)])
@@ -236,8 +243,8 @@ def test_stream_convergence(tau: float, omega: float) -> None:
         return float(np.max(np.abs(np.concatenate(results[n]) / ref - 1.0)))
 
     assert err(8) > err(16) > err(32)
-    assert err(16) < 5e-3
-    assert err(32) < 1e-4
+    assert err(16) < 2e-3
+    assert err(32) < 5e-6
 
 
 def test_callable_phase_function_matches_helper() -> None:
@@ -254,7 +261,9 @@ def test_callable_phase_function_matches_helper() -> None:
 
 
 def test_shapes_and_input_validation() -> None:
-    refl, trans = slab_radiances(1.0, 0.9, rayleigh(), 0.5, 0.0, [[0.0], [45.0]], [0.0, 90.0, 180.0])
+    refl, trans = slab_radiances(
+        1.0, 0.9, rayleigh(), 0.5, 0.0, [[0.0], [45.0]], [0.0, 90.0, 180.0]
+    )
     assert refl.shape == trans.shape == (2, 3)
     # Azimuth is irrelevant at nadir/zenith view.
     np.testing.assert_allclose(refl[0], refl[0, 0], rtol=1e-12)
@@ -264,3 +273,14 @@ def test_shapes_and_input_validation() -> None:
         slab_radiances(1.0, 1.1, rayleigh(), 0.5, 0.0, 10.0, 0.0)
     with pytest.raises(ValueError):
         slab_radiances(-1.0, 0.9, rayleigh(), 0.5, 0.0, 10.0, 0.0)
+
+
+def test_view_chunking_is_transparent(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Many distinct view angles are processed in chunks; results must not depend on it."""
+    import reference.plane_parallel as module
+
+    views = ([0.0, 10.0, 20.0, 35.0, 50.0, 70.0, 10.0], [0.0, 30, 60, 90, 120, 150, 300])
+    whole = slab_radiances(1.0, 0.9, MIX_085, 0.7, 0.0, *views, 0.2)
+    monkeypatch.setattr(module, "_VIEW_CHUNK", 2)
+    chunked = slab_radiances(1.0, 0.9, MIX_085, 0.7, 0.0, *views, 0.2)
+    np.testing.assert_allclose(chunked, whole, rtol=1e-12)

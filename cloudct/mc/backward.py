@@ -20,6 +20,7 @@ import math
 
 from numba import njit, prange
 
+from cloudct.mc.accumulate import add_to
 from cloudct.mc.cameras import pixel_ray
 from cloudct.mc.events import lambertian_bounce, russian_roulette, scatter
 from cloudct.mc.random import DOMAIN_BACKWARD, stream_start, uniform
@@ -115,6 +116,6 @@ def backward_batches(
                             grid, bank, cams, sun, periodic, ground_albedo, rr_depth,
                             rr_survival, seed, index, view, row, col,
                         )
-                        images[b, view, row, col] += value
+                        add_to(images[b], view, row, col, value)
                         n += vertices
         events[b] += n

@@ -18,32 +18,52 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 from numba import njit, prange
 
+from cloudct.mc.accumulate import add_to
 from cloudct.mc.cameras import project
 from cloudct.mc.events import lambertian_bounce, russian_roulette, scatter
 from cloudct.mc.random import DOMAIN_FORWARD, stream_start, uniform
 from cloudct.mc.sun import sample_entry_point
-from cloudct.mc.traversal import BOTTOM, LEFT, locate_point, march, optical_depth_to_exit
-from cloudct.physics.mixing import effective_albedo, mixture_phase_function
+from cloudct.mc.traversal import INF, BOTTOM, LEFT, locate_point, march, optical_depth_to_exit
+from cloudct.physics.mixing import (
+    effective_albedo,
+    mixture_phase_function,
+    scattering_log_derivative,
+)
 
 INV_PI = 1.0 / math.pi
+
+
+#: What a forward pass does with its local estimates.
+RENDER = 0  # add them to the images
+RESIDUAL = 1  # sum them, weighted by the pixels' residuals (first gradient pass)
+GRADIENT = 2  # deposit the residual-weighted score-function gradient (second pass)
+
+#: The particle type whose extinction the gradients are taken with respect to.
+CLOUD = 1
 
 
 @njit(cache=True)
 def local_estimate(
     grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz, weight, ground_albedo,
-    image,
+    mode, image, residual, gradient,
 ):
-    """Add the local estimates of one event at (px, py, pz) to every camera's image.
+    """Local estimates of one event at (px, py, pz) to every camera (Eqs. 36-39).
 
     A scattering event (``ground_albedo < 0``) uses the mixture phase function at the angle
     between the incoming direction (ux, uy, uz) and the direction to the camera; a ground
     event uses the Lambertian factor A cos(theta) / pi.
+
+    ``mode`` RENDER adds each estimate to ``image``. RESIDUAL and GRADIENT return the sum S
+    of the estimates weighted by their pixels' ``residual``; GRADIENT also deposits into
+    ``gradient`` the terms of the score function (Eq. 49) that belong to this event alone:
+    the connection segment to the camera (-l per voxel) and, for scattering, the vertex
+    term at the angle towards the camera.
     """
     lx = grid.x_edges[-1] - grid.x_edges[0]
     ly = grid.y_edges[-1] - grid.y_edges[0]
+    weighted_sum = 0.0
     for view in range(cams.position.shape[0]):
         for i in range(copies[view, 0], copies[view, 1] + 1):
             for j in range(copies[view, 2], copies[view, 3] + 1):
@@ -52,27 +72,48 @@ def local_estimate(
                 )
                 if row < 0:
                     continue
+                mu = ux * cx + uy * cy + uz * cz
                 if ground_albedo < 0.0:
-                    angular = mixture_phase_function(
-                        grid, bank, ix, iy, iz, ux * cx + uy * cy + uz * cz
-                    )
+                    angular = mixture_phase_function(grid, bank, ix, iy, iz, mu)
                 elif cz > 0.0:
                     angular = ground_albedo * cz * INV_PI
                 else:
                     continue
+                if mode != RENDER and residual[view, row, col] == 0.0:
+                    continue
                 tau = optical_depth_to_exit(grid, px, py, pz, cx, cy, cz, ix, iy, iz, periodic)
-                image[view, row, col] += weight * angular * math.exp(-tau) * inv_r2_omega
+                value = weight * angular * math.exp(-tau) * inv_r2_omega
+                if mode == RENDER:
+                    add_to(image, view, row, col, value)
+                    continue
+                value *= residual[view, row, col]
+                weighted_sum += value
+                if mode == GRADIENT and value != 0.0:
+                    march(grid, px, py, pz, cx, cy, cz, ix, iy, iz, INF, periodic, gradient, -value)
+                    if ground_albedo < 0.0:
+                        add_to(
+                            gradient, ix, iy, iz,
+                            value * scattering_log_derivative(grid, bank, CLOUD, ix, iy, iz, mu),
+                        )
+    return weighted_sum
 
 
 @njit(cache=True)
 def trace_photon(
     grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, index,
-    image,
+    mode, image, residual, gradient, path_sum,
 ):
-    """Trace forward photon ``index`` and add its local estimates to ``image``.
+    """Trace forward photon ``index`` (``ground_albedo < 0``: no ground).
 
-    ``ground_albedo < 0`` means no ground (light leaving through the bottom is lost).
-    Returns the number of scattering and ground events of the path.
+    RENDER adds the path's local estimates to ``image``. RESIDUAL returns the path's sum S
+    of residual-weighted estimates, sum_e S_e over its events e. GRADIENT, given that sum
+    as ``path_sum``, re-traces the same path (same random stream) and deposits the
+    residual-weighted score-function gradient sum_e S_e score_e (Eqs. 46-49). The score of
+    event e holds the segments and sampled vertices of the path up to e, so segment k is
+    weighted by W_k = sum_{e >= k} S_e, obtained as ``path_sum`` minus the events already
+    passed: the cost stays linear in the path length.
+
+    Returns ``(vertices, S)``.
     """
     state = stream_start(seed, DOMAIN_FORWARD, index)
     u_face, state = uniform(state)
@@ -83,60 +124,92 @@ def trace_photon(
     ix, iy, iz = locate_point(grid, px, py, pz, ux, uy, uz)
     weight = sun.power
     depth = 0
+    total = 0.0
+    remaining = path_sum  # W_k: the residual-weighted estimates of events not yet passed
     while True:
         u, state = uniform(state)
-        status, px, py, pz, ix, iy, iz, _ = march(
-            grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
-        )
+        if mode == GRADIENT and remaining != 0.0:
+            status, px, py, pz, ix, iy, iz, _ = march(
+                grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic, gradient,
+                -remaining,
+            )
+        else:
+            status, px, py, pz, ix, iy, iz, _ = march(
+                grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
+            )
         if status == LEFT:
-            return depth
+            return depth, total
         if status == BOTTOM:
             if ground_albedo <= 0.0:
-                return depth
-            local_estimate(
+                return depth, total
+            s_event = local_estimate(
                 grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz, weight,
-                ground_albedo, image,
+                ground_albedo, mode, image, residual, gradient,
             )
             weight *= ground_albedo
             ux, uy, uz, state = lambertian_bounce(state)
         else:
             albedo = effective_albedo(grid, ix, iy, iz)
+            if albedo == 0.0:
+                return depth, total
             weight *= albedo
-            local_estimate(
+            s_event = local_estimate(
                 grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz, weight,
-                -1.0, image,
+                -1.0, mode, image, residual, gradient,
             )
+            vx, vy, vz = ux, uy, uz
             ux, uy, uz, state = scatter(grid, bank, ix, iy, iz, ux, uy, uz, state)
+            if mode == GRADIENT:
+                # the sampled vertex term belongs to the scores of all later events
+                mu = vx * ux + vy * uy + vz * uz
+                later = remaining - s_event
+                if later != 0.0:
+                    add_to(
+                        gradient, ix, iy, iz,
+                        later * scattering_log_derivative(grid, bank, CLOUD, ix, iy, iz, mu),
+                    )
+        total += s_event
+        remaining -= s_event
         depth += 1
         factor, state = russian_roulette(depth, rr_depth, rr_survival, state)
         if factor == 0.0:
-            return depth
+            return depth, total
         weight *= factor
 
 
 @njit(parallel=True, cache=True)
 def forward_batches(
     grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
-    photons_per_batch, first, last, images, events,
+    photons_per_batch, first, last, mode, images, residual, gradients, events,
 ):
     """Trace photons ``first .. last - 1`` of every batch, in parallel over batches.
 
     Batch ``b`` owns photon indices ``b * photons_per_batch + k``, so which photons a batch
-    holds, and their random streams, do not depend on the thread count. ``images[b]``
-    accumulates the batch's local estimates (not yet divided by its photon count) and
-    ``events[b]`` its number of path vertices.
+    holds, and their random streams, do not depend on the thread count. RENDER accumulates
+    batch b's local estimates (not yet divided by its photon count) in ``images[b]``;
+    GRADIENT accumulates its residual-weighted score-function gradient in ``gradients[b]``
+    (each photon first traced in RESIDUAL mode for its sum, then again in GRADIENT mode).
+    ``events[b]`` counts the path vertices.
     """
     for b in prange(images.shape[0]):
         n = 0
         for k in range(first, last):
-            n += trace_photon(
-                grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
-                seed, b * photons_per_batch + k, images[b],
-            )
+            index = b * photons_per_batch + k
+            if mode == RENDER:
+                n += trace_photon(
+                    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth,
+                    rr_survival, seed, index, RENDER, images[b], residual, gradients[b], 0.0,
+                )[0]
+            else:
+                vertices, path_sum = trace_photon(
+                    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth,
+                    rr_survival, seed, index, RESIDUAL, images[b], residual, gradients[b], 0.0,
+                )
+                if path_sum != 0.0:
+                    trace_photon(
+                        grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth,
+                        rr_survival, seed, index, GRADIENT, images[b], residual, gradients[b],
+                        path_sum,
+                    )
+                n += vertices
         events[b] += n
-
-
-def new_batch_images(nbatch: int, cams) -> tuple[np.ndarray, np.ndarray]:
-    """Zeroed per-batch image accumulators and event counters."""
-    images = np.zeros((nbatch, cams.position.shape[0], cams.nrows, cams.ncols))
-    return images, np.zeros(nbatch, dtype=np.int64)

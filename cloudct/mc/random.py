@@ -27,6 +27,7 @@ _TWO_M53 = 1.0 / 9007199254740992.0  # 2**-53
 #: estimators on disjoint streams for the same seed.
 DOMAIN_FORWARD = 1
 DOMAIN_BACKWARD = 2
+DOMAIN_DRT = 3
 
 
 @njit(cache=True)

@@ -16,19 +16,23 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import xarray as xr
 from tqdm.auto import tqdm
 
 from cloudct.mc.backward import backward_batches
-from cloudct.mc.cameras import camera_arrays
-from cloudct.mc.forward import forward_batches
+from cloudct.mc.cameras import CameraArrays, camera_arrays
+from cloudct.mc.forward import RENDER, forward_batches
 from cloudct.mc.scene import Scene, check_scene, periodic_copy_ranges, single_cloud_scene
-from cloudct.mc.sun import sun_arrays
+from cloudct.mc.sun import SunArrays, sun_arrays
 from cloudct.medium import cell_edges, is_optical, load_medium, validate_medium
+from cloudct.physics.mixing import OpticalGrid
 from cloudct.physics.optics import kernel_arrays, to_optical
+from cloudct.physics.phase import PhaseBank
 
 RADIANCE_UNITS = "1"  # in units of the solar irradiance perpendicular to the rays, per sr
 METHODS = ("forward", "backward")
@@ -42,8 +46,8 @@ def render(
     method: str = "forward",
     seed: int = 0,
     batches: int = 32,
-    rr_depth: int = 50,
-    rr_survival: float = 0.9,
+    rr_depth: int = 100,
+    rr_survival: float = 0.95,
     progress: bool | None = None,
 ) -> xr.Dataset:
     """Images of ``medium`` seen by the cameras of ``scene``.
@@ -69,6 +73,29 @@ def render(
     progress
         Show a progress bar (None: only on a terminal).
     """
+    batch_means, info = render_batches(
+        medium, scene, photons=photons, method=method, seed=seed, batches=batches,
+        rr_depth=rr_depth, rr_survival=rr_survival, progress=progress,
+    )
+    radiance = batch_means.mean(axis=0)
+    std_error = batch_means.std(axis=0, ddof=1) / math.sqrt(batches)
+    return images_dataset(radiance, std_error, scene, **info)
+
+
+def render_batches(
+    medium: xr.Dataset,
+    scene: Scene,
+    *,
+    photons: int,
+    method: str = "forward",
+    seed: int = 0,
+    batches: int = 32,
+    rr_depth: int = 100,
+    rr_survival: float = 0.95,
+    progress: bool | None = None,
+) -> tuple[np.ndarray, dict]:
+    """The images of each independent batch, float64[batches, view, row, col], and the run's
+    attributes; :func:`render` averages them. Arguments as for :func:`render`."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if int(photons) < 1:
@@ -77,46 +104,82 @@ def render(
         raise ValueError(f"batches must be at least 2 for standard errors, got {batches}")
     if not 0.0 < rr_survival <= 1.0 or rr_depth < 1:
         raise ValueError("rr_survival must be in (0, 1] and rr_depth >= 1")
+    k = kernel_inputs(medium, scene)
+    per_batch = math.ceil(int(photons) / batches)
+    images = np.zeros((batches, len(scene.cameras), k.cams.nrows, k.cams.ncols))
+    events = np.zeros(batches, dtype=np.int64)
+    no_residual = np.zeros((1, 1, 1))
+    no_gradients = np.zeros((batches, 1, 1, 1))
+
+    def run(first: int, last: int) -> None:
+        if method == "forward":
+            forward_batches(
+                k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, rr_depth,
+                rr_survival, seed, per_batch, first, last, RENDER, images, no_residual,
+                no_gradients, events,
+            )
+        else:
+            backward_batches(
+                k.grid, k.bank, k.cams, k.sun, k.periodic, k.ground, rr_depth, rr_survival,
+                seed, per_batch, first, last, images, events,
+            )
+
+    unit = "photon" if method == "forward" else "sample/px"
+    wall = run_in_rounds(run, per_batch, batches, progress, unit=unit, desc=method)
+
+    info = dict(
+        method=method, photons=per_batch * batches, seed=seed, batches=batches,
+        events=int(events.sum()), wall_time=wall, rr_depth=rr_depth, rr_survival=rr_survival,
+    )
+    return images / per_batch, info
+
+
+class KernelInputs(NamedTuple):
+    """Everything the kernels need of a medium and a scene."""
+
+    grid: OpticalGrid
+    bank: PhaseBank
+    cams: CameraArrays
+    copies: np.ndarray
+    sun: SunArrays
+    periodic: bool
+    ground: float  # ground albedo, -1 for no ground
+    edges: tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def kernel_inputs(medium: xr.Dataset, scene: Scene) -> KernelInputs:
+    """Validate a medium and a scene and gather them into kernel arrays."""
     validate_medium(medium)
     optical = medium if is_optical(medium) else to_optical(medium)
     grid, bank = kernel_arrays(optical)
     edges = cell_edges(optical)
     check_scene(scene, edges)
-    cams = camera_arrays(scene.cameras)
-    copies = periodic_copy_ranges(scene, edges)
-    sun = sun_arrays(scene.sun, edges, scene.periodic)
-    ground = -1.0 if scene.ground_albedo is None else float(scene.ground_albedo)
-
-    per_batch = math.ceil(int(photons) / batches)
-    images = np.zeros((batches, len(scene.cameras), cams.nrows, cams.ncols))
-    events = np.zeros(batches, dtype=np.int64)
-    start = time.perf_counter()
-    rounds = np.unique(np.linspace(0, per_batch, min(per_batch, 50) + 1).astype(np.int64))
-    unit = "photon" if method == "forward" else "sample/px"
-    disable = None if progress is None else not progress
-    with tqdm(total=per_batch * batches, disable=disable, unit=unit, desc=method) as bar:
-        for first, last in zip(rounds[:-1], rounds[1:]):
-            if method == "forward":
-                forward_batches(
-                    grid, bank, cams, copies, sun, scene.periodic, ground, rr_depth,
-                    rr_survival, seed, per_batch, first, last, images, events,
-                )
-            else:
-                backward_batches(
-                    grid, bank, cams, sun, scene.periodic, ground, rr_depth, rr_survival,
-                    seed, per_batch, first, last, images, events,
-                )
-            bar.update(int(last - first) * batches)
-    wall = time.perf_counter() - start
-
-    batch_means = images / per_batch
-    radiance = batch_means.mean(axis=0)
-    std_error = batch_means.std(axis=0, ddof=1) / math.sqrt(batches)
-    return images_dataset(
-        radiance, std_error, scene,
-        method=method, photons=per_batch * batches, seed=seed, batches=batches,
-        events=int(events.sum()), wall_time=wall, rr_depth=rr_depth, rr_survival=rr_survival,
+    return KernelInputs(
+        grid=grid,
+        bank=bank,
+        cams=camera_arrays(scene.cameras),
+        copies=periodic_copy_ranges(scene, edges),
+        sun=sun_arrays(scene.sun, edges, scene.periodic),
+        periodic=scene.periodic,
+        ground=-1.0 if scene.ground_albedo is None else float(scene.ground_albedo),
+        edges=edges,
     )
+
+
+def run_in_rounds(
+    run: Callable[[int, int], None], per_batch: int, batches: int, progress: bool | None,
+    unit: str, desc: str,
+) -> float:
+    """Call ``run(first, last)`` over up to 50 rounds of the per-batch sample range, with a
+    progress bar; returns the wall time in seconds."""
+    rounds = np.unique(np.linspace(0, per_batch, min(per_batch, 50) + 1).astype(np.int64))
+    disable = None if progress is None else not progress
+    start = time.perf_counter()
+    with tqdm(total=per_batch * batches, disable=disable, unit=unit, desc=desc) as bar:
+        for first, last in zip(rounds[:-1], rounds[1:]):
+            run(int(first), int(last))
+            bar.update(int(last - first) * batches)
+    return time.perf_counter() - start
 
 
 def images_dataset(

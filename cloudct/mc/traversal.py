@@ -17,6 +17,7 @@ import math
 
 from numba import njit
 
+from cloudct.mc.accumulate import add_to
 from cloudct.physics.mixing import total_extinction
 
 #: March outcomes.
@@ -64,11 +65,17 @@ def _distance_to_face(edges, i, p, d):
 
 
 @njit(cache=True)
-def march(grid, px, py, pz, ux, uy, uz, ix, iy, iz, tau_target, periodic):
+def march(
+    grid, px, py, pz, ux, uy, uz, ix, iy, iz, tau_target, periodic, lengths=None,
+    length_weight=0.0,
+):
     """Walk from (px, py, pz) in voxel (ix, iy, iz) along the unit vector (ux, uy, uz).
 
     The walk stops where the optical depth reaches ``tau_target`` (use ``inf`` for a
-    transmittance), or where the ray leaves the medium.
+    transmittance), or where the ray leaves the medium. When an array ``lengths`` is given,
+    ``length_weight`` x (length inside the voxel) is added to ``lengths[ix, iy, iz]``
+    for every voxel crossed: the derivative of ``length_weight`` x (-log transmittance) with
+    respect to each voxel's extinction, which the gradient estimators need.
 
     Returns ``(status, px, py, pz, ix, iy, iz, tau)`` with status :data:`STOPPED`,
     :data:`LEFT` or :data:`BOTTOM`; the position and voxel are where the walk ended (for
@@ -90,7 +97,11 @@ def march(grid, px, py, pz, ux, uy, uz, ix, iy, iz, tau_target, periodic):
         dtau = beta * t
         if tau + dtau >= tau_target:
             s = (tau_target - tau) / beta
+            if lengths is not None:
+                add_to(lengths, ix, iy, iz, length_weight * s)
             return STOPPED, px + s * ux, py + s * uy, pz + s * uz, ix, iy, iz, tau_target
+        if lengths is not None:
+            add_to(lengths, ix, iy, iz, length_weight * t)
         tau += dtau
         px += t * ux
         py += t * uy

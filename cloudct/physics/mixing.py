@@ -95,3 +95,22 @@ def choose_particle_type(grid: OpticalGrid, ix: int, iy: int, iz: int, u: float)
             if target < cumulative:
                 return j
     return last
+
+
+@njit(cache=True)
+def scattering_log_derivative(
+    grid: OpticalGrid, bank: PhaseBank, ptype: int, ix: int, iy: int, iz: int, mu: float
+) -> float:
+    """d log(beta_s f_p(mu)) / d beta^(ptype) at fixed albedos, seed paper Eq. (49):
+    w^(ptype) f^(ptype)(mu) / sum_j beta_s^(j) f^(j)(mu) [km]; 0 where nothing scatters."""
+    num = 0.0
+    den = 0.0
+    for j in range(grid.extinction.shape[0]):
+        w = grid.albedo[j, ix, iy, iz]
+        wf = w * phase_function(bank, grid.phase_index[j, ix, iy, iz], mu)
+        if j == ptype:
+            num = wf
+        den += wf * grid.extinction[j, ix, iy, iz]
+    if den <= 0.0:
+        return 0.0
+    return num / den

@@ -42,7 +42,7 @@ def _single_veff(medium: xr.Dataset) -> float:
     veff = medium["veff"].broadcast_like(medium["lwc"]).values[medium["lwc"].values > 0]
     values = np.unique(veff)
     if values.size > 1:
-        raise NotImplementedError(
+        raise ValueError(
             f"veff varies over the cloud ({values.min():g}..{values.max():g}); "
             "the Mie optics use one table, i.e. one veff"
         )

@@ -1,0 +1,547 @@
+"""Differential ratio tracking (DRT) gradients of the backward estimator w.r.t. cloud extinction.
+
+For per-pixel residual weights r_d (= w_d (I_d - I_d^measured)) this module estimates
+
+    g_v = sum_d r_d dI_d / d beta_v,
+
+where beta_v is the CLOUD extinction (particle type 1) of voxel v, with the cloud albedo
+alpha_c and phase function f_c held fixed (so the cloud scattering coefficient alpha_c beta_v
+moves with it) and air (type 0) fixed. I_d is the backward estimator of
+:mod:`cloudct.mc.backward`: pixel ray, free flights by exact inversion of the optical depth,
+next-event estimation (NEE) to the sun at every vertex, optional Lambertian ground,
+medium-independent Russian roulette. The estimator follows Nimier-David et al. (2022),
+"Unbiased inverse volumetric rendering with differential trackers" (DRT), Secs. 4.1-4.7,
+adapted to this engine as below. It is unbiased for every voxel, including voxels where the
+cloud extinction, or even the total extinction, is zero, where a score-function (free-flight)
+estimator misses the in-scattering term altogether (DRT Sec. 4.2, "Bias").
+
+Radiance along a ray (DRT Eq. 4 in this engine's terms)
+------------------------------------------------------
+A ray from x along the unit vector u (backward direction: light travels along -u) meets the
+box boundary or the ground at t_s. With T(t) = exp(-int_0^t beta) the transmittance,
+
+    L(x, u) = int_0^t_s T(t) J(x_t, u) dt + T(t_s) L_g,
+
+    J(x, u) = sum_j alpha_j beta_j [ f_j(s.u) T_sun(x) + int f_j(u.w) L(x, w) dw ],
+
+the in-scattered radiance per unit length: the mixture of seed-paper Eqs. (2)-(5) written as
+sum_j beta_s^(j) f_j = beta_s f_mix, the collimated sun (irradiance 1, towards-sun unit
+vector s, T_sun(x) the transmittance from x to the top of the box along s) and the diffuse
+radiance L. L_g = A cos(theta0)/pi T_sun + A int cos/pi L is the Lambertian ground. The pixel
+value is the pixel-area average of L over the pixel's rays. (DRT's sigma_t alpha L_s is J.)
+
+Derivative w.r.t. beta_v (DRT Eqs. 5-7)
+---------------------------------------
+With 1_v(x) the indicator of voxel v and len_v(a, b) the length of the chord a-b inside v:
+
+(1a) in-scattering, Eq. (5):  int_0^t_s T(t) dJ/dbeta_v dt, where, the albedos and phase
+     functions being fixed, d(sum_j alpha_j beta_j f_j)/dbeta_v = alpha_c f_c 1_v:
+
+         dJ/dbeta_v = 1_v(x) alpha_c [ f_c(s.u) T_sun(x) + int f_c(u.w) L(x, w) dw ]
+                      - len_v(x, sun) * (sun part of J)          [NEE attenuation];
+
+     the first line is the term a score function cannot sample where beta = 0.
+(a)  attenuation, Eq. (6):  -len_v(0, t) T(t) J(t) and -len_v(0, t_s) T(t_s) L_g, and the
+     -len_v(x, sun) of every NEE connection (last line of (1a));
+(1b) recursion, Eq. (7): T alpha dL/dbeta and the ground's dL_g/dbeta (no own dependence on
+     beta: DRT Eq. (9) with L_e = 0), estimated by the terms of the rest of the path.
+
+Estimators
+----------
+A sample traces one backward path (vertices k = 1..n; segment j runs from vertex j-1, or the
+box entry point for j = 1, to vertex j or out of the medium) with throughput Theta_j on
+segment j (product of the effective albedos, ground albedos and roulette factors before it)
+and NEE contributions E_k. I_hat = sum_k E_k. The path is traced twice with the same random
+stream, like path replay backpropagation (DRT Sec. 3.2, steps II and III): pass 1 gives
+R = sum_k E_k, pass 2 replays the identical path and, knowing every suffix
+S_j = sum_{k >= j} E_k = R - (prefix sum), deposits in linear time and constant memory:
+
+(a)  segment j: -r S_j len_v(segment j) (free-flight estimator of the transmittance
+     gradients, DRT Eq. 10; for a segment ending on the ground or leaving the medium this is
+     the second row of Eq. 6), and at every vertex k: -r E_k len_v(NEE ray to the sun).
+     Both through :func:`~cloudct.mc.traversal.march` with its ``lengths`` deposit.
+(1a) free-flight (DT) part, DRT Eq. (8) first summand, at each scattering vertex x_k in
+     voxel v_k, sampled with density beta T by the free flight, MIS-weighted by w_DT(x_k):
+
+         r w_DT alpha_c [ Theta_k f_c(s.u) T_sun / beta
+                          + f_c(mu_k) S_{k+1} / (sum_j alpha_j beta_j f_j(mu_k)) ]
+
+     where mu_k is the sampled scattering cosine (density f_mix(mu_k)) and S_{k+1}, the
+     suffix after vertex k, equals Theta_k alpha_eff RR_k L_hat(x_k, u_k); the division by
+     alpha_eff cancels into the mixture kernel, so no 0 * inf appears.
+(1a) DRT part, Eqs. (13), (16): the in-scattering integral of one ray sampled with density
+     T(t) / C, C = int_0^t_s T dt (Eq. 15), with the sample weight C (Eqs. 19-20):
+
+         r (W / Theta_j) Theta_j C w_DRT(x') alpha_c(x')
+             [ f_c(s.u) T_sun(x') + L_hat(x', w') ],   w' ~ f_c(u . w'),
+
+     deposited into the voxel of x'. The diffuse part is estimated by a new backward path
+     from x' in a direction w' drawn from the CLOUD phase function of that voxel (it exists
+     on every voxel, whatever its cloud extinction); it needs only the radiance, not its
+     derivative. Linear time (Sec. 4.7): one segment j per path is chosen by weighted
+     reservoir sampling with weights Theta_j; W = sum_j Theta_j over the path's segments
+     is the inverse selection probability times Theta_j. The reservoir, the transmittance
+     sample and the recursive path draw from a second stream, so given the path they are
+     independent of it and the selection is unbiased.
+(1b) recursion: nothing to add; the terms above at later vertices carry Theta.
+
+Transmittance sampling: exact "ratio tracking" voxel by voxel
+-------------------------------------------------------------
+The paper's ratio tracker builds a stochastic piecewise-constant approximation f_RT of T
+from majorant steps (Eq. 19) because its media are arbitrary functions of position. Here
+the extinction is piecewise constant, so along a ray the exact transmittance is piecewise
+exponential and every voxel piece i (entry T_i, length d_i, extinction beta_i) has the exact
+area a_i = T_i (1 - exp(-beta_i d_i)) / beta_i (a_i = T_i d_i where beta_i = 0). The walk
+proposes each piece to a weighted reservoir with weight a_i (Listing 1 with the exact area
+instead of Tr * dt) and then samples the distance inside the chosen piece exactly
+proportional to exp(-beta_i t). This is DRT's residual ratio tracking (Sec. 4.5 and its
+Appendix B) with the control extinction equal to the true piecewise-constant extinction:
+the tracking is T itself, the weight sum_i a_i = C is exact (zero variance), t' has density
+exactly T / C, the cost is one walk to the exit (the price of one NEE transmittance, with no
+majorant to choose), and empty voxels are sampled like any other.
+
+Multiple importance sampling (Sec. 4.6, Eqs. 21-22)
+---------------------------------------------------
+Power heuristic of p_DT = beta T against p_DRT = T / C with C replaced by a fixed length
+ell (the height of the box, the order of C where the weights matter, i.e. in thin media;
+using the exact C_j would need a walk per segment, and the selection-dependent factor
+W / Theta_j cannot be used, since W depends on the sampled vertex):
+
+    w_DT(x) = (beta ell)^2 / ((beta ell)^2 + 1),   w_DRT(x) = 1 - w_DT(x),
+
+and w_DT = 0 where nothing scatters (beta_s = 0 < beta, a purely absorbing voxel), where the
+free-flight estimate would need 0 * inf: the weights only need to sum to one at every point,
+and there the DRT sample carries the whole in-scattering term. Where beta = 0, w_DRT = 1.
+
+Random streams: domain :data:`~cloudct.mc.random.DOMAIN_DRT`; pixel sample ``index`` uses
+stream 2 * index for the path (passes 1 and 2) and 2 * index + 1 for the reservoir, the
+transmittance sample and the recursive path. The paths are therefore uncorrelated with the
+images of :mod:`cloudct.mc.backward` for the same seed, as an unbiased loss gradient needs
+(DRT footnote 1).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import xarray as xr
+from numba import njit, prange
+
+from cloudct.mc.accumulate import add_to
+from cloudct.mc.cameras import camera_arrays, pixel_ray
+from cloudct.mc.events import lambertian_bounce, russian_roulette, scatter
+from cloudct.mc.random import DOMAIN_DRT, stream_start, uniform
+from cloudct.mc.scene import Scene, check_scene
+from cloudct.mc.sun import sun_arrays
+from cloudct.mc.traversal import (
+    BOTTOM,
+    INF,
+    LEFT,
+    _distance_to_face,
+    locate_point,
+    march,
+    optical_depth_to_exit,
+    ray_box_entry,
+    wrap_into_box,
+)
+from cloudct.medium import cell_edges, is_optical, validate_medium
+from cloudct.physics.mixing import (
+    effective_albedo,
+    mixture_phase_function,
+    scattering_coefficient,
+    total_extinction,
+)
+from cloudct.physics.optics import kernel_arrays, to_optical
+from cloudct.physics.phase import phase_function, sample_phase_cosine, scatter_direction
+
+INV_PI = 1.0 / math.pi
+TWO_PI = 2.0 * math.pi
+CLOUD = 1  # particle type whose extinction is differentiated
+
+
+@njit(cache=True)
+def sample_transmittance(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic, state):
+    """A point on the ray from (px, py, pz) along (ux, uy, uz), drawn with density T(t) / C.
+
+    The ray runs to where it leaves the medium (or reaches the bottom); C = int T dt over it.
+    Each voxel piece is proposed to a weighted reservoir with its exact area
+    T_in (1 - exp(-beta d)) / beta, then the distance inside the chosen piece is drawn
+    proportional to exp(-beta t) (exact ratio tracking, see the module docstring).
+
+    Returns ``(C, qx, qy, qz, qix, qiy, qiz, state)``; C = 0 (no point) for an empty chord.
+    """
+    xe = grid.x_edges
+    ye = grid.y_edges
+    ze = grid.z_edges
+    nx = xe.size - 1
+    ny = ye.size - 1
+    nz = ze.size - 1
+    trans = 1.0
+    total = 0.0
+    rx = ry = rz = 0.0
+    rix = riy = riz = -1
+    rbeta = 0.0
+    rlen = 0.0
+    while True:
+        tx = _distance_to_face(xe, ix, px, ux)
+        ty = _distance_to_face(ye, iy, py, uy)
+        tz = _distance_to_face(ze, iz, pz, uz)
+        t = min(tx, min(ty, tz))
+        beta = total_extinction(grid, ix, iy, iz)
+        x = beta * t
+        area = trans * t * (-math.expm1(-x) / x) if x > 0.0 else trans * t
+        if area > 0.0:
+            total += area
+            u, state = uniform(state)
+            if u * total < area:
+                rx, ry, rz = px, py, pz
+                rix, riy, riz = ix, iy, iz
+                rbeta = beta
+                rlen = t
+        trans *= math.exp(-x)
+        px += t * ux
+        py += t * uy
+        pz += t * uz
+        # voxel stepping and boundaries exactly as in traversal.march
+        if t == tx:
+            if ux > 0.0:
+                ix += 1
+                px = xe[ix]
+                if ix == nx:
+                    if not periodic:
+                        break
+                    ix = 0
+                    px = xe[0]
+            else:
+                px = xe[ix]
+                ix -= 1
+                if ix < 0:
+                    if not periodic:
+                        break
+                    ix = nx - 1
+                    px = xe[nx]
+        elif t == ty:
+            if uy > 0.0:
+                iy += 1
+                py = ye[iy]
+                if iy == ny:
+                    if not periodic:
+                        break
+                    iy = 0
+                    py = ye[0]
+            else:
+                py = ye[iy]
+                iy -= 1
+                if iy < 0:
+                    if not periodic:
+                        break
+                    iy = ny - 1
+                    py = ye[ny]
+        else:
+            if uz > 0.0:
+                iz += 1
+                pz = ze[iz]
+                if iz == nz:
+                    break
+            else:
+                pz = ze[iz]
+                iz -= 1
+                if iz < 0:
+                    break
+    if rix < 0:
+        return 0.0, 0.0, 0.0, 0.0, 0, 0, 0, state
+    u, state = uniform(state)
+    x = rbeta * rlen
+    if x > 0.0:
+        s = -math.log1p(u * math.expm1(-x)) / rbeta
+    else:
+        s = u * rlen
+    s = min(s, rlen)
+    return total, rx + s * ux, ry + s * uy, rz + s * uz, rix, riy, riz, state
+
+
+@njit(cache=True)
+def free_flight_mis_weight(grid, ix, iy, iz, length):
+    """w_DT of the module docstring: (beta ell)^2 / ((beta ell)^2 + 1), 0 where beta_s = 0."""
+    if scattering_coefficient(grid, ix, iy, iz) <= 0.0:
+        return 0.0
+    x = total_extinction(grid, ix, iy, iz) * length
+    x *= x
+    return x / (x + 1.0)
+
+
+@njit(cache=True)
+def scattering_kernel(grid, bank, ix, iy, iz, mu):
+    """sum_j alpha_j beta_j f_j(mu) = beta_s f_mix(mu) [1/(km sr)]."""
+    value = 0.0
+    for j in range(grid.extinction.shape[0]):
+        bs = grid.albedo[j, ix, iy, iz] * grid.extinction[j, ix, iy, iz]
+        if bs > 0.0:
+            value += bs * phase_function(bank, grid.phase_index[j, ix, iy, iz], mu)
+    return value
+
+
+@njit(cache=True)
+def trace_path(
+    grid, bank, sun, periodic, ground_albedo, rr_depth, rr_survival, px, py, pz, ix, iy, iz,
+    ux, uy, uz, state, replay, total, residual, gradient, side, mis_length,
+):
+    """A backward path from (px, py, pz) in voxel (ix, iy, iz) along (ux, uy, uz).
+
+    Pass 1 (``replay`` False) returns its radiance estimate R = sum_k E_k (also used for the
+    recursive paths of the DRT samples). Pass 2 (``replay`` True, same ``state``, ``total``
+    = R of pass 1) replays the identical path and adds to ``gradient`` the attenuation terms
+    and the MIS-weighted free-flight in-scattering terms, all times ``residual``, and runs the
+    segment reservoir on the ``side`` stream.
+
+    Returns ``(radiance, vertices, state, side, W, found, rx, ry, rz, rix, riy, riz, rux,
+    ruy, ruz)``: the reservoir's weight sum W = sum_j Theta_j and the chosen segment's start
+    point, voxel and direction (``found`` False when no segment had throughput).
+    """
+    sx, sy, sz = -sun.direction[0], -sun.direction[1], -sun.direction[2]  # towards the sun
+    radiance = 0.0  # prefix sum of the E_k
+    throughput = 1.0
+    depth = 0
+    res_w = 0.0
+    found = False
+    rx = ry = rz = 0.0
+    rix = riy = riz = 0
+    rux = ruy = ruz = 0.0
+    while True:
+        u, state = uniform(state)
+        if replay:
+            # Sec. 4.7: one segment per path, reservoir proportional to the throughput
+            res_w += throughput
+            v, side = uniform(side)
+            if v * res_w < throughput:
+                found = True
+                rx, ry, rz, rix, riy, riz, rux, ruy, ruz = px, py, pz, ix, iy, iz, ux, uy, uz
+            # Eq. (10) / Eq. (6): every later contribution is attenuated by this segment
+            status, px, py, pz, ix, iy, iz, _ = march(
+                grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic, gradient,
+                -residual * (total - radiance),
+            )
+        else:
+            status, px, py, pz, ix, iy, iz, _ = march(
+                grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
+            )
+        if status == LEFT:
+            break
+        if status == BOTTOM and ground_albedo <= 0.0:
+            break
+        tau_sun = optical_depth_to_exit(grid, px, py, pz, sx, sy, sz, ix, iy, iz, periodic)
+        t_sun = math.exp(-tau_sun)
+        if status == BOTTOM:
+            e = throughput * ground_albedo * sz * INV_PI * t_sun
+            radiance += e
+            if replay and e != 0.0:
+                march(
+                    grid, px, py, pz, sx, sy, sz, ix, iy, iz, INF, periodic, gradient,
+                    -residual * e,
+                )
+            throughput *= ground_albedo
+            ux, uy, uz, state = lambertian_bounce(state)
+        else:
+            albedo = effective_albedo(grid, ix, iy, iz)
+            mu_sun = sx * ux + sy * uy + sz * uz
+            e = throughput * albedo * mixture_phase_function(grid, bank, ix, iy, iz, mu_sun) * t_sun
+            radiance += e
+            theta = throughput
+            throughput *= albedo
+            nux, nuy, nuz, state = scatter(grid, bank, ix, iy, iz, ux, uy, uz, state)
+            if replay:
+                if e != 0.0:  # NEE attenuation
+                    march(
+                        grid, px, py, pz, sx, sy, sz, ix, iy, iz, INF, periodic, gradient,
+                        -residual * e,
+                    )
+                w_dt = free_flight_mis_weight(grid, ix, iy, iz, mis_length)
+                alpha_c = grid.albedo[CLOUD, ix, iy, iz]
+                if w_dt > 0.0 and alpha_c > 0.0:
+                    # Eq. (8), first summand, MIS-weighted: sun part + diffuse part, whose
+                    # continuation estimate is the suffix after this vertex
+                    ip = grid.phase_index[CLOUD, ix, iy, iz]
+                    beta = total_extinction(grid, ix, iy, iz)
+                    value = theta * phase_function(bank, ip, mu_sun) * t_sun / beta
+                    suffix = total - radiance
+                    if suffix != 0.0:
+                        mu = min(max(ux * nux + uy * nuy + uz * nuz, -1.0), 1.0)
+                        kernel = scattering_kernel(grid, bank, ix, iy, iz, mu)
+                        if kernel > 0.0:
+                            value += phase_function(bank, ip, mu) * suffix / kernel
+                    add_to(gradient, ix, iy, iz, residual * w_dt * alpha_c * value)
+            ux, uy, uz = nux, nuy, nuz
+        depth += 1
+        factor, state = russian_roulette(depth, rr_depth, rr_survival, state)
+        if factor == 0.0:
+            break
+        throughput *= factor
+        if throughput == 0.0:
+            break
+    return (
+        radiance, depth, state, side, res_w, found, rx, ry, rz, rix, riy, riz, rux, ruy, ruz,
+    )
+
+
+@njit(cache=True)
+def drt_pixel_sample(
+    grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, index, view,
+    row, col, residual, gradient, mis_length,
+):
+    """Add one pixel sample's residual-weighted gradient estimate to ``gradient``.
+
+    Returns the number of path vertices traced (the primal path once, the DRT path).
+    """
+    state = stream_start(seed, DOMAIN_DRT, 2 * index)
+    side = stream_start(seed, DOMAIN_DRT, 2 * index + 1)
+    xi_u, state = uniform(state)
+    xi_v, state = uniform(state)
+    ux, uy, uz = pixel_ray(cams, view, row, col, xi_u, xi_v)
+    ox = cams.position[view, 0]
+    oy = cams.position[view, 1]
+    oz = cams.position[view, 2]
+    t = ray_box_entry(grid, ox, oy, oz, ux, uy, uz, periodic)
+    if t < 0.0:
+        return 0
+    px, py, pz = ox + t * ux, oy + t * uy, oz + t * uz
+    if periodic:
+        px, py = wrap_into_box(grid, px, py)
+    ix, iy, iz = locate_point(grid, px, py, pz, ux, uy, uz)
+    # pass 1: the path's radiance estimate
+    total, vertices, _, _, _, _, _, _, _, _, _, _, _, _, _ = trace_path(
+        grid, bank, sun, periodic, ground_albedo, rr_depth, rr_survival, px, py, pz, ix, iy,
+        iz, ux, uy, uz, state, False, 0.0, residual, gradient, side, mis_length,
+    )
+    # pass 2: replay with deposits, segment reservoir on the side stream
+    (_, _, _, side, res_w, found, rx, ry, rz, rix, riy, riz, rux, ruy, ruz) = trace_path(
+        grid, bank, sun, periodic, ground_albedo, rr_depth, rr_survival, px, py, pz, ix, iy,
+        iz, ux, uy, uz, state, True, total, residual, gradient, side, mis_length,
+    )
+    if not found:
+        return vertices
+    # DRT in-scattering sample on the chosen segment, Eqs. (13), (16), (19)
+    c, qx, qy, qz, qix, qiy, qiz, side = sample_transmittance(
+        grid, rx, ry, rz, rux, ruy, ruz, rix, riy, riz, periodic, side
+    )
+    if c <= 0.0:
+        return vertices
+    w_drt = 1.0 - free_flight_mis_weight(grid, qix, qiy, qiz, mis_length)
+    alpha_c = grid.albedo[CLOUD, qix, qiy, qiz]
+    if w_drt <= 0.0 or alpha_c <= 0.0:
+        return vertices
+    ip = grid.phase_index[CLOUD, qix, qiy, qiz]
+    sx, sy, sz = -sun.direction[0], -sun.direction[1], -sun.direction[2]
+    tau_sun = optical_depth_to_exit(grid, qx, qy, qz, sx, sy, sz, qix, qiy, qiz, periodic)
+    value = phase_function(bank, ip, sx * rux + sy * ruy + sz * ruz) * math.exp(-tau_sun)
+    # diffuse part: a new path from x' in a direction drawn from the cloud phase function
+    u, side = uniform(side)
+    mu = sample_phase_cosine(bank, ip, u)
+    u, side = uniform(side)
+    wx, wy, wz = scatter_direction(rux, ruy, ruz, mu, TWO_PI * u)
+    diffuse, more, _, _, _, _, _, _, _, _, _, _, _, _, _ = trace_path(
+        grid, bank, sun, periodic, ground_albedo, rr_depth, rr_survival, qx, qy, qz, qix, qiy,
+        qiz, wx, wy, wz, side, False, 0.0, residual, gradient, side, mis_length,
+    )
+    value += diffuse
+    add_to(gradient, qix, qiy, qiz, residual * res_w * c * w_drt * alpha_c * value)
+    return vertices + more
+
+
+@njit(parallel=True, cache=True)
+def drt_batches(
+    grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
+    samples_per_batch, first, last, residual, gradients, events,
+):
+    """gradients[b] (float64[nbatch, nx, ny, nz]) accumulates batch b's sum over its samples of
+    residual-weighted dI/dbeta_cloud estimates (not yet divided by samples_per_batch).
+
+    Samples ``first .. last - 1`` of every pixel in every batch, parallel over batches, with
+    the sample indices of :func:`cloudct.mc.backward.backward_batches`; pixels whose residual
+    is 0 are skipped. ``events[b]`` accumulates the number of path vertices traced.
+    """
+    nbatch = gradients.shape[0]
+    nview, nrows, ncols = residual.shape
+    mis_length = grid.z_edges[-1] - grid.z_edges[0]
+    for b in prange(nbatch):
+        n = 0
+        for view in range(nview):
+            for row in range(nrows):
+                for col in range(ncols):
+                    r = residual[view, row, col]
+                    if r == 0.0:
+                        continue
+                    pixel = (view * nrows + row) * ncols + col
+                    for k in range(first, last):
+                        index = (pixel * nbatch + b) * samples_per_batch + k
+                        n += drt_pixel_sample(
+                            grid, bank, cams, sun, periodic, ground_albedo, rr_depth,
+                            rr_survival, seed, index, view, row, col, r, gradients[b],
+                            mis_length,
+                        )
+        events[b] += n
+
+
+def drt_gradient(
+    medium: xr.Dataset,
+    scene: Scene,
+    residual: np.ndarray,
+    *,
+    samples_per_pixel: int,
+    seed: int = 0,
+    batches: int = 32,
+    rr_depth: int = 100,
+    rr_survival: float = 0.95,
+) -> tuple[np.ndarray, np.ndarray]:
+    """sum_d residual_d dI_d / d(cloud extinction) per voxel, by differential ratio tracking.
+
+    Parameters
+    ----------
+    medium
+        A medium Dataset (optical, or microphysical: converted with the default optics).
+    scene
+        Cameras, sun, boundary conditions and ground.
+    residual
+        Per-pixel weights, shape (view, row, col), e.g. w_d (I_d - I_d^measured).
+    samples_per_pixel
+        Backward samples per pixel, rounded up to a multiple of ``batches``.
+    seed, batches, rr_depth, rr_survival
+        As for :func:`cloudct.mc.render.render`.
+
+    Returns
+    -------
+    ``(mean, std_error)``, float64[nx, ny, nz] each, in km x (residual units x radiance
+    units): the mean over the batches and its standard error (std of the batch means over
+    sqrt(batches)).
+    """
+    if int(samples_per_pixel) < 1:
+        raise ValueError(f"samples_per_pixel must be positive, got {samples_per_pixel}")
+    if int(batches) < 2:
+        raise ValueError(f"batches must be at least 2 for standard errors, got {batches}")
+    if not 0.0 < rr_survival <= 1.0 or rr_depth < 1:
+        raise ValueError("rr_survival must be in (0, 1] and rr_depth >= 1")
+    validate_medium(medium)
+    optical = medium if is_optical(medium) else to_optical(medium)
+    grid, bank = kernel_arrays(optical)
+    edges = cell_edges(optical)
+    check_scene(scene, edges)
+    cams = camera_arrays(scene.cameras)
+    sun = sun_arrays(scene.sun, edges, scene.periodic)
+    ground = -1.0 if scene.ground_albedo is None else float(scene.ground_albedo)
+    residual = np.ascontiguousarray(residual, dtype=np.float64)
+    shape = (len(scene.cameras), cams.nrows, cams.ncols)
+    if residual.shape != shape:
+        raise ValueError(f"residual must have shape (view, row, col) = {shape}, "
+                         f"got {residual.shape}")
+    if not np.all(np.isfinite(residual)):
+        raise ValueError("residual must be finite")
+
+    per_batch = math.ceil(int(samples_per_pixel) / batches)
+    gradients = np.zeros((batches, *grid.extinction.shape[1:]))
+    events = np.zeros(batches, dtype=np.int64)
+    drt_batches(
+        grid, bank, cams, sun, scene.periodic, ground, rr_depth, rr_survival, seed, per_batch,
+        0, per_batch, residual, gradients, events,
+    )
+    batch_means = gradients / per_batch
+    return batch_means.mean(axis=0), batch_means.std(axis=0, ddof=1) / math.sqrt(batches)
