@@ -1,0 +1,102 @@
+"""The retrieval's loss and its gradient with respect to every voxel's cloud extinction.
+
+Seed paper Eq. (41), with pixel weights w_d (e.g. inverse noise variances; 0 masks a pixel):
+
+    L = 1/2 sum_d w_d (I_d - I_d^measured)^2,
+    dL / d beta_v = sum_d w_d (I_d - I_d^measured) dI_d / d beta_v        (Eq. 43/48)
+
+computed without forming the Jacobian: the residual-weighted derivative is one Monte Carlo
+pass (:mod:`cloudct.mc.gradient`). The images I_d in the residual come from paths
+independent of the gradient's paths (a different seed), so that the product of two
+estimates is an unbiased estimate of the product of their means (the bias Gkioulekas et al.
+and the DRT paper point out when the same paths serve both).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import xarray as xr
+
+from cloudct.mc.gradient import score_function_gradient
+from cloudct.mc.render import render
+from cloudct.mc.scene import Scene
+
+ESTIMATORS = ("score",)
+
+
+@dataclass
+class LossGradient:
+    """A loss evaluation: the loss, its gradient over (x, y, z) with standard errors, and
+    the images the residual was computed from."""
+
+    loss: float
+    gradient: np.ndarray
+    gradient_std_error: np.ndarray
+    images: xr.Dataset
+    residual: np.ndarray
+
+
+def pixel_weights(
+    measurements: xr.Dataset, weights: np.ndarray | None = None, mask: np.ndarray | None = None
+) -> np.ndarray:
+    """Per-pixel loss weights: ``weights`` (default 1) times ``mask`` (default all pixels),
+    with NaN measured pixels masked out (a warning says how many)."""
+    measured = measurements["radiance"].values
+    w = np.ones(measured.shape) if weights is None else np.asarray(weights, dtype=float).copy()
+    if w.shape != measured.shape:
+        raise ValueError(f"weights have shape {w.shape}, the measurements {measured.shape}")
+    if not np.all(np.isfinite(w)) or np.any(w < 0):
+        raise ValueError("pixel weights must be finite and non-negative")
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != measured.shape:
+            raise ValueError(f"mask has shape {mask.shape}, the measurements {measured.shape}")
+        w = np.where(mask, w, 0.0)
+    bad = ~np.isfinite(measured)
+    if bad.any():
+        warnings.warn(
+            f"{int(bad.sum())} measured pixels are NaN or infinite; they are masked out",
+            stacklevel=2,
+        )
+        w = np.where(bad, 0.0, w)
+    return w
+
+
+def loss_and_gradient(
+    medium: xr.Dataset,
+    measurements: xr.Dataset,
+    *,
+    photons: int,
+    gradient_photons: int | None = None,
+    seed: int = 0,
+    weights: np.ndarray | None = None,
+    mask: np.ndarray | None = None,
+    estimator: str = "score",
+    batches: int = 32,
+    progress: bool | None = False,
+) -> LossGradient:
+    """The loss of ``medium`` against ``measurements`` (an images Dataset carrying its
+    scene, as written by :func:`cloudct.mc.render.render`) and its gradient.
+
+    ``photons`` render the images of the residual (seed ``2 seed``); ``gradient_photons``
+    (default: ``photons``) estimate the gradient on independent paths (seed ``2 seed + 1``).
+    """
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
+    scene = Scene.from_dataset(measurements)
+    w = pixel_weights(measurements, weights, mask)
+    measured = np.nan_to_num(measurements["radiance"].values)
+    images = render(
+        medium, scene, photons=photons, seed=2 * seed, batches=batches, progress=progress
+    )
+    difference = images["radiance"].values - measured
+    residual = w * difference
+    loss = 0.5 * float(np.sum(residual * difference))
+    mean, std_error, _ = score_function_gradient(
+        medium, scene, residual, photons=gradient_photons or photons, seed=2 * seed + 1,
+        batches=batches, progress=progress,
+    )
+    return LossGradient(loss, mean, std_error, images, residual)
