@@ -148,7 +148,8 @@ def test_thin_box_single_scattering(thin_box_scene):
         assert np.all(est[miss] == 0.0), "light from outside the box"
         lit = whole & ~miss
         assert lit.sum() > 60
-        assert_consistent(est[lit], se[lit], ref[lit], images.attrs["batches"], label=f"view {view}")
+        batches = images.attrs["batches"]
+        assert_consistent(est[lit], se[lit], ref[lit], batches, label=f"view {view}")
 
 
 # ----------------------------------------------------------------------------------------

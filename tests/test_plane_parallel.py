@@ -70,7 +70,7 @@ def test_slab_reflection_and_transmission(method, photons):
     scene = Scene(cams, SUN, "periodic", ground_albedo=None)
     images = render(slab_medium(), scene, photons=photons, method=method, seed=9, progress=False)
     upward = [True] * len(REFLECTED) + [False] * len(TRANSMITTED)
-    ref = np.array([reference_image(c, u) for c, u in zip(cams, upward)])
+    ref = np.array([reference_image(c, u) for c, u in zip(cams, upward, strict=True)])
     assert_consistent(
         images.radiance.values, images.radiance_std_error.values, ref,
         images.attrs["batches"], label=f"{method} slab",

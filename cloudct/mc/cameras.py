@@ -217,9 +217,8 @@ def ring_cameras(
     for az in np.radians(np.asarray(azimuths, dtype=float)):
         offset = distance * np.array([np.sin(th) * np.cos(az), np.sin(th) * np.sin(az), np.cos(th)])
         up = (0.0, 0.0, 1.0) if zenith > 1e-6 else (0.0, 1.0, 0.0)
-        cams.append(
-            Camera(tuple(target_arr + offset), tuple(target_arr), up, fov=fov, nrows=npix, ncols=npix)
-        )
+        position = tuple(target_arr + offset)
+        cams.append(Camera(position, tuple(target_arr), up, fov=fov, nrows=npix, ncols=npix))
     return cams
 
 

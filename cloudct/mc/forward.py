@@ -25,7 +25,7 @@ from cloudct.mc.cameras import project
 from cloudct.mc.events import lambertian_bounce, russian_roulette, scatter
 from cloudct.mc.random import DOMAIN_FORWARD, stream_start, uniform
 from cloudct.mc.sun import sample_entry_point
-from cloudct.mc.traversal import INF, BOTTOM, LEFT, locate_point, march, optical_depth_to_exit
+from cloudct.mc.traversal import BOTTOM, INF, LEFT, locate_point, march, optical_depth_to_exit
 from cloudct.physics.mixing import (
     effective_albedo,
     mixture_phase_function,

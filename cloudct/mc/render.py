@@ -176,7 +176,7 @@ def run_in_rounds(
     disable = None if progress is None else not progress
     start = time.perf_counter()
     with tqdm(total=per_batch * batches, disable=disable, unit=unit, desc=desc) as bar:
-        for first, last in zip(rounds[:-1], rounds[1:]):
+        for first, last in zip(rounds[:-1], rounds[1:], strict=True):
             run(int(first), int(last))
             bar.update(int(last - first) * batches)
     return time.perf_counter() - start
