@@ -49,6 +49,7 @@ def assert_consistent(
     z_max = float(np.max(np.abs(z)))
     z_limit = stats.t.isf(0.5e-4 / n, dof)
     summary = {"n": n, "pooled_z": float(pooled), "mean_z2": mean_z2, "max_abs_z": z_max}
+    print(f"{label}: " + ", ".join(f"{k} {v:.3g}" for k, v in summary.items()))
     assert abs(pooled) < 4.0, f"{label}: pooled z-score {pooled:.2f} ({summary})"
     assert abs(mean_z2 - e_z2) < 4 * sd_z2, (
         f"{label}: mean z^2 {mean_z2:.3f}, expected {e_z2:.3f} +- {sd_z2:.3f} ({summary})"

@@ -1,16 +1,65 @@
 """Adding a contribution to a shared output array from inside a kernel.
 
-Every kernel writes its images and gradients through :func:`add_to`. On the CPU each
-batch owns its output array, so a plain addition is race-free; a GPU back end, where many
-threads share one array, gives this function an atomic implementation for the CUDA target.
+Every kernel writes its images and gradients through :func:`add_to`, the one operation of the
+engine that differs between targets. It is a plain Python function with one numba
+implementation per target (``numba.extending.overload``):
+
+- ``cpu``: ``array[i, j, k] += value``. Each CPU batch owns its output array, so a plain
+  addition is race-free (and compiles to exactly what an ``@njit`` function did).
+- ``cuda``: ``cuda.atomic.add``, since many GPU threads share one array. It is registered by
+  :func:`register_cuda_implementation`, which the CUDA back end
+  (:mod:`cloudct.mc.cuda_kernels`) calls on import, so that importing cloudct never needs
+  numba-cuda.
+
+The ``@njit`` routines of the engine call ``add_to``; numba-cuda compiles those routines for
+the GPU when a CUDA kernel calls them, and resolves ``add_to`` to the CUDA implementation
+there.
 """
 
 from __future__ import annotations
 
 from numba import njit
+from numba.extending import overload
 
 
-@njit(cache=True)
 def add_to(array, i, j, k, value):
-    """array[i, j, k] += value."""
+    """array[i, j, k] += value.
+
+    Called from Python (not from compiled code: the CUDA simulator runs kernels as Python
+    threads), it runs the compiled CPU addition, a single call under the GIL and so atomic
+    with respect to other Python threads.
+    """
+    _add_to_cpu(array, i, j, k, value)
+
+
+def _add(array, i, j, k, value):
     array[i, j, k] += value
+
+
+_add_to_cpu = njit(cache=True)(_add)
+
+
+@overload(add_to, target="cpu")
+def _add_to_cpu_overload(array, i, j, k, value):
+    return _add
+
+
+_cuda_registered = False
+
+
+def register_cuda_implementation() -> None:
+    """Give :func:`add_to` its atomic CUDA implementation (needs numba-cuda; idempotent)."""
+    global _cuda_registered
+    if _cuda_registered:
+        return
+    from numba import cuda
+    from numba.cuda.extending import overload as cuda_overload
+
+    def _atomic_add(array, i, j, k, value):
+        cuda.atomic.add(array, (i, j, k), value)
+
+    @cuda_overload(add_to, target="cuda")
+    def _add_to_cuda_overload(array, i, j, k, value):
+        return _atomic_add
+
+    _cuda_registered = True

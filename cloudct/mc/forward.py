@@ -17,7 +17,9 @@ the event, so each image copy that falls in its field of view is estimated.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
+import numpy as np
 from numba import njit, prange
 
 from cloudct.mc.accumulate import add_to
@@ -25,7 +27,15 @@ from cloudct.mc.cameras import project
 from cloudct.mc.events import lambertian_bounce, russian_roulette, scatter
 from cloudct.mc.random import DOMAIN_FORWARD, stream_start, uniform
 from cloudct.mc.sun import sample_entry_point
-from cloudct.mc.traversal import BOTTOM, INF, LEFT, locate_point, march, optical_depth_to_exit
+from cloudct.mc.traversal import (
+    BOTTOM,
+    INF,
+    LEFT,
+    STOPPED,
+    locate_point,
+    march,
+    optical_depth_to_exit,
+)
 from cloudct.physics.mixing import (
     effective_albedo,
     mixture_phase_function,
@@ -39,15 +49,55 @@ INV_PI = 1.0 / math.pi
 RENDER = 0  # add them to the images
 RESIDUAL = 1  # sum them, weighted by the pixels' residuals (first gradient pass)
 GRADIENT = 2  # deposit the residual-weighted score-function gradient (second pass)
+COUNT = 3  # no estimates: count the path's records (path recycling, first pass)
+RECORD = 4  # no estimates: write the path's records into a PathRecord (second pass)
 
 #: The particle type whose extinction the gradients are taken with respect to.
 CLOUD = 1
+
+#: Kinds of path records (path recycling, :mod:`cloudct.recycling`).
+ENTRY = 0  # the start point on a sunlit face, travelling along the sun's rays
+SCATTER = 1  # a scattering vertex (the last one of a path may have albedo 0: absorbed)
+GROUND = 2  # a reflection by the Lambertian ground
+ESCAPE = 3  # where the path left the medium (or was absorbed by a black / no ground)
+
+
+class PathRecord(NamedTuple):
+    """Where RECORD mode writes a path: one row per record, CSR over photons (the caller
+    gives each photon its first row). The direction is that of the segment arriving at the
+    record (the sun's for ENTRY); ``voxel`` the flat index ``(ix * ny + iy) * nz + iz`` of
+    the voxel the tracer is in there; ``optical_depth`` the optical depth sampled for the
+    segment arriving at a SCATTER record, ``inf`` for a segment that ends on a face of the
+    box (GROUND, ESCAPE), 0 for ENTRY."""
+
+    position: np.ndarray  # float64[3, nrecords], km
+    direction: np.ndarray  # float64[3, nrecords]
+    optical_depth: np.ndarray  # float64[nrecords]
+    kind: np.ndarray  # int8[nrecords]
+    voxel: np.ndarray  # int32 or int64[nrecords]
+
+
+@njit(cache=True)
+def put_record(record, row, kind, grid, px, py, pz, ux, uy, uz, ix, iy, iz, optical_depth):
+    """Write one row of a :class:`PathRecord` (nothing when ``record`` is None: counting)."""
+    if record is not None:
+        record.position[0, row] = px
+        record.position[1, row] = py
+        record.position[2, row] = pz
+        record.direction[0, row] = ux
+        record.direction[1, row] = uy
+        record.direction[2, row] = uz
+        record.optical_depth[row] = optical_depth
+        record.kind[row] = kind
+        ny = grid.y_edges.size - 1
+        nz = grid.z_edges.size - 1
+        record.voxel[row] = (ix * ny + iy) * nz + iz
 
 
 @njit(cache=True)
 def local_estimate(
     grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz, weight, ground_albedo,
-    mode, image, residual, gradient,
+    mode, image, residual, gradient, trail=None,
 ):
     """Local estimates of one event at (px, py, pz) to every camera (Eqs. 36-39).
 
@@ -59,7 +109,10 @@ def local_estimate(
     of the estimates weighted by their pixels' ``residual``; GRADIENT also deposits into
     ``gradient`` the terms of the score function (Eq. 49) that belong to this event alone:
     the connection segment to the camera (-l per voxel) and, for scattering, the vertex
-    term at the angle towards the camera.
+    term at the angle towards the camera. With a scratch :class:`~cloudct.mc.traversal.Trail`
+    (``trail``), GRADIENT deposits the connection segment from the crossings recorded while
+    computing its transmittance instead of walking it a second time (same values, same
+    order; a ray with more crossings than the trail holds is walked again).
     """
     lx = grid.x_edges[-1] - grid.x_edges[0]
     ly = grid.y_edges[-1] - grid.y_edges[0]
@@ -81,7 +134,16 @@ def local_estimate(
                     continue
                 if mode != RENDER and residual[view, row, col] == 0.0:
                     continue
-                tau = optical_depth_to_exit(grid, px, py, pz, cx, cy, cz, ix, iy, iz, periodic)
+                if trail is None:
+                    tau = optical_depth_to_exit(
+                        grid, px, py, pz, cx, cy, cz, ix, iy, iz, periodic
+                    )
+                else:
+                    trail.count[0] = 0
+                    tau = march(
+                        grid, px, py, pz, cx, cy, cz, ix, iy, iz, INF, periodic, None, 0.0, INF,
+                        trail,
+                    )[7]
                 value = weight * angular * math.exp(-tau) * inv_r2_omega
                 if mode == RENDER:
                     add_to(image, view, row, col, value)
@@ -89,7 +151,13 @@ def local_estimate(
                 value *= residual[view, row, col]
                 weighted_sum += value
                 if mode == GRADIENT and value != 0.0:
-                    march(grid, px, py, pz, cx, cy, cz, ix, iy, iz, INF, periodic, gradient, -value)
+                    if trail is not None and trail.count[0] <= trail.voxel.size:
+                        deposit_trail(grid, trail, gradient, -value)
+                    else:
+                        march(
+                            grid, px, py, pz, cx, cy, cz, ix, iy, iz, INF, periodic, gradient,
+                            -value,
+                        )
                     if ground_albedo < 0.0:
                         add_to(
                             gradient, ix, iy, iz,
@@ -99,9 +167,22 @@ def local_estimate(
 
 
 @njit(cache=True)
+def deposit_trail(grid, trail, gradient, weight):
+    """gradient[voxel] += weight x length for the crossings of a :class:`Trail`, in order."""
+    ny = grid.y_edges.size - 1
+    nz = grid.z_edges.size - 1
+    for c in range(trail.count[0]):
+        v = trail.voxel[c]
+        iz = v % nz
+        iy = (v // nz) % ny
+        ix = v // (nz * ny)
+        add_to(gradient, ix, iy, iz, weight * trail.length[c])
+
+
+@njit(cache=True)
 def trace_photon(
     grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, index,
-    mode, image, residual, gradient, path_sum,
+    mode, image, residual, gradient, path_sum, record=None, first=0,
 ):
     """Trace forward photon ``index`` (``ground_albedo < 0``: no ground).
 
@@ -113,7 +194,12 @@ def trace_photon(
     weighted by W_k = sum_{e >= k} S_e, obtained as ``path_sum`` minus the events already
     passed: the cost stays linear in the path length.
 
-    Returns ``(vertices, S)``.
+    COUNT and RECORD make no estimates (the same random stream gives the same path): they
+    return the number of path records (:data:`ENTRY`, its vertices, and the :data:`ESCAPE`
+    of a path that leaves or meets a non-reflecting ground), and RECORD writes them into
+    ``record`` from row ``first`` (:class:`PathRecord`, for path recycling).
+
+    Returns ``(vertices, S)``; ``(records, 0)`` in COUNT and RECORD modes.
     """
     state = stream_start(seed, DOMAIN_FORWARD, index)
     u_face, state = uniform(state)
@@ -126,6 +212,10 @@ def trace_photon(
     depth = 0
     total = 0.0
     remaining = path_sum  # W_k: the residual-weighted estimates of events not yet passed
+    records = 0  # COUNT / RECORD modes
+    if mode >= COUNT:
+        put_record(record, first, ENTRY, grid, px, py, pz, ux, uy, uz, ix, iy, iz, 0.0)
+        records = 1
     while True:
         u, state = uniform(state)
         if mode == GRADIENT and remaining != 0.0:
@@ -137,26 +227,41 @@ def trace_photon(
             status, px, py, pz, ix, iy, iz, _ = march(
                 grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
             )
+        if mode >= COUNT:
+            if status == STOPPED:
+                kind, sampled = SCATTER, -math.log(u)
+            elif status == BOTTOM and ground_albedo > 0.0:
+                kind, sampled = GROUND, INF
+            else:
+                kind, sampled = ESCAPE, INF
+            put_record(
+                record, first + records, kind, grid, px, py, pz, ux, uy, uz, ix, iy, iz, sampled
+            )
+            records += 1
         if status == LEFT:
-            return depth, total
+            return (depth if mode < COUNT else records), total
         if status == BOTTOM:
             if ground_albedo <= 0.0:
-                return depth, total
-            s_event = local_estimate(
-                grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz, weight,
-                ground_albedo, mode, image, residual, gradient,
-            )
+                return (depth if mode < COUNT else records), total
+            s_event = 0.0
+            if mode < COUNT:
+                s_event = local_estimate(
+                    grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz,
+                    weight, ground_albedo, mode, image, residual, gradient,
+                )
             weight *= ground_albedo
             ux, uy, uz, state = lambertian_bounce(state)
         else:
             albedo = effective_albedo(grid, ix, iy, iz)
             if albedo == 0.0:
-                return depth, total
+                return (depth if mode < COUNT else records), total
             weight *= albedo
-            s_event = local_estimate(
-                grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz, weight,
-                -1.0, mode, image, residual, gradient,
-            )
+            s_event = 0.0
+            if mode < COUNT:
+                s_event = local_estimate(
+                    grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz,
+                    weight, -1.0, mode, image, residual, gradient,
+                )
             vx, vy, vz = ux, uy, uz
             ux, uy, uz, state = scatter(grid, bank, ix, iy, iz, ux, uy, uz, state)
             if mode == GRADIENT:
@@ -173,7 +278,7 @@ def trace_photon(
         depth += 1
         factor, state = russian_roulette(depth, rr_depth, rr_survival, state)
         if factor == 0.0:
-            return depth, total
+            return (depth if mode < COUNT else records), total
         weight *= factor
 
 

@@ -14,7 +14,9 @@ or reaches the bottom. With ``open`` boundaries it ends when it leaves through a
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
+import numpy as np
 from numba import njit
 
 from cloudct.mc.accumulate import add_to
@@ -26,6 +28,40 @@ LEFT = 1  # left the box through the top (or, with open boundaries, any side fac
 BOTTOM = 2  # reached the bottom face of the box (the ground, where there is one)
 
 INF = math.inf
+
+
+class Trail(NamedTuple):
+    """A record of the voxels a :func:`march` crosses (path recycling, gradient deposits).
+
+    The walk appends, for every voxel it crosses, the flat voxel index
+    ``(ix * ny + iy) * nz + iz`` and the length inside the voxel, while there is room
+    (``capacity = voxel.size``, 0 to only count), and always advances ``count[0]`` and adds
+    the length to ``distance[0]``. The caller resets ``count`` and ``distance``.
+    """
+
+    voxel: np.ndarray  # int32 or int64[capacity]
+    length: np.ndarray  # float64[capacity], km
+    count: np.ndarray  # int64[1]: crossings walked (may exceed the capacity)
+    distance: np.ndarray  # float64[1]: distance walked, km
+
+
+def new_trail(capacity: int, voxel_dtype=np.int64) -> Trail:
+    """An empty :class:`Trail` with room for ``capacity`` crossings."""
+    return Trail(
+        np.zeros(capacity, voxel_dtype), np.zeros(capacity), np.zeros(1, np.int64), np.zeros(1)
+    )
+
+
+@njit(cache=True)
+def _trail_append(trail, grid, ix, iy, iz, length):
+    n = trail.count[0]
+    if n < trail.voxel.size:
+        ny = grid.y_edges.size - 1
+        nz = grid.z_edges.size - 1
+        trail.voxel[n] = (ix * ny + iy) * nz + iz
+        trail.length[n] = length
+    trail.count[0] = n + 1
+    trail.distance[0] += length
 
 
 @njit(cache=True)
@@ -67,15 +103,17 @@ def _distance_to_face(edges, i, p, d):
 @njit(cache=True)
 def march(
     grid, px, py, pz, ux, uy, uz, ix, iy, iz, tau_target, periodic, lengths=None,
-    length_weight=0.0,
+    length_weight=0.0, max_distance=INF, trail=None,
 ):
     """Walk from (px, py, pz) in voxel (ix, iy, iz) along the unit vector (ux, uy, uz).
 
     The walk stops where the optical depth reaches ``tau_target`` (use ``inf`` for a
-    transmittance), or where the ray leaves the medium. When an array ``lengths`` is given,
-    ``length_weight`` x (length inside the voxel) is added to ``lengths[ix, iy, iz]``
-    for every voxel crossed: the derivative of ``length_weight`` x (-log transmittance) with
-    respect to each voxel's extinction, which the gradient estimators need.
+    transmittance), where the distance walked reaches ``max_distance`` (the optical depth
+    between two points), whichever comes first, or where the ray leaves the medium. When an
+    array ``lengths`` is given, ``length_weight`` x (length inside the voxel) is added to
+    ``lengths[ix, iy, iz]`` for every voxel crossed: the derivative of ``length_weight`` x
+    (-log transmittance) with respect to each voxel's extinction, which the gradient
+    estimators need. A :class:`Trail` records the crossings.
 
     Returns ``(status, px, py, pz, ix, iy, iz, tau)`` with status :data:`STOPPED`,
     :data:`LEFT` or :data:`BOTTOM`; the position and voxel are where the walk ended (for
@@ -88,6 +126,7 @@ def march(
     ny = ye.size - 1
     nz = ze.size - 1
     tau = 0.0
+    walked = 0.0
     while True:
         tx = _distance_to_face(xe, ix, px, ux)
         ty = _distance_to_face(ye, iy, py, uy)
@@ -95,14 +134,27 @@ def march(
         t = min(tx, min(ty, tz))
         beta = total_extinction(grid, ix, iy, iz)
         dtau = beta * t
+        if walked + t >= max_distance:
+            s = max_distance - walked
+            if tau + beta * s < tau_target:
+                if lengths is not None:
+                    add_to(lengths, ix, iy, iz, length_weight * s)
+                if trail is not None:
+                    _trail_append(trail, grid, ix, iy, iz, s)
+                return STOPPED, px + s * ux, py + s * uy, pz + s * uz, ix, iy, iz, tau + beta * s
         if tau + dtau >= tau_target:
             s = (tau_target - tau) / beta
             if lengths is not None:
                 add_to(lengths, ix, iy, iz, length_weight * s)
+            if trail is not None:
+                _trail_append(trail, grid, ix, iy, iz, s)
             return STOPPED, px + s * ux, py + s * uy, pz + s * uz, ix, iy, iz, tau_target
         if lengths is not None:
             add_to(lengths, ix, iy, iz, length_weight * t)
+        if trail is not None:
+            _trail_append(trail, grid, ix, iy, iz, t)
         tau += dtau
+        walked += t
         px += t * ux
         py += t * uy
         pz += t * uz

@@ -1,0 +1,426 @@
+"""Numba kernels of path recycling: recording paths, their correction factors, and the
+re-evaluation of images and gradients from stored paths (seed paper Sec. 5, Eqs. 50-53).
+
+A stored path is a run of records (:class:`cloudct.mc.forward.PathRecord` kinds): ENTRY,
+its vertices (SCATTER, GROUND) and, for a path that leaves the medium, ESCAPE. Segment k
+runs from record k - 1 to record k along ``direction[:, k]``; it is ``length[k]`` long
+when it ends at a SCATTER vertex and otherwise ends on a face of the box. Everything that
+depends on the medium is computed by the functions below, for the reference medium when
+the store is made and for the current medium at every re-evaluation, with the same
+floating-point operations in the same order: the correction factor is exactly 1 when the
+two media are the same, and both storage modes give identical results.
+
+Per record, under a medium M (``segment_term``, ``direction_term``):
+
+    segment term   log beta(x_k) - tau(segment k)        (SCATTER: free-flight pdf beta T)
+                   - tau(segment k)                      (GROUND, ESCAPE: probability T)
+    direction term log f_p,mixture(x_k, d_k . d_{k+1})   (SCATTER followed by a record)
+
+The source, the Lambertian bounce and the Russian roulette do not depend on the medium,
+so log r = sum over records of (term under M_t - term under M_ref). The local estimate at
+event e uses the prefix ratio r_e: the segment terms up to e and the direction terms of
+the vertices before e.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit, prange
+
+from cloudct.mc.accumulate import add_to
+from cloudct.mc.forward import (
+    CLOUD,
+    COUNT,
+    ESCAPE,
+    GRADIENT,
+    GROUND,
+    RECORD,
+    RENDER,
+    SCATTER,
+    local_estimate,
+    trace_photon,
+)
+from cloudct.mc.traversal import INF, Trail, march
+from cloudct.physics.mixing import (
+    effective_albedo,
+    mixture_phase_function,
+    scattering_log_derivative,
+    total_extinction,
+)
+
+
+class StoreArrays(NamedTuple):
+    """The arrays of a path store as the kernels see them (see :class:`PathStore`)."""
+
+    path_start: np.ndarray  # int64[npaths + 1]: CSR offsets of each stored path's records
+    slot: np.ndarray  # int64[npaths]: storage slot of the path of photon-order position j
+    position: np.ndarray  # float64[3, nrec], km (wrapped into the box if periodic)
+    direction: np.ndarray  # float64[3, nrec]: direction of the segment arriving at the record
+    length: np.ndarray  # float64[nrec]: length of that segment, km
+    kind: np.ndarray  # int8[nrec]: ENTRY, SCATTER, GROUND, ESCAPE
+    voxel: np.ndarray  # int32/int64[nrec]: flat voxel index (ix * ny + iy) * nz + iz
+    seg_ref: np.ndarray  # float64[nrec]: segment term under the reference medium
+    dir_ref: np.ndarray  # float64[nrec]: direction term under the reference medium
+    crossing_start: np.ndarray  # int64[nrec + 1] ("crossings" storage; else int64[1])
+    crossing_voxel: np.ndarray  # int32/int64[ncross]: flat voxel of each crossing
+    crossing_length: np.ndarray  # float64[ncross]: length inside it, km
+
+
+@njit(cache=True)
+def decode_voxel(v, ny, nz):
+    """(ix, iy, iz) of the flat voxel index (ix * ny + iy) * nz + iz."""
+    iz = v % nz
+    rest = v // nz
+    return rest // ny, rest % ny, iz
+
+
+@njit(parallel=True, cache=True)
+def flat_total_extinction(grid):
+    """Total extinction of every voxel by flat index, computed as the traversal does."""
+    nx, ny, nz = grid.extinction.shape[1:]
+    beta = np.empty(nx * ny * nz)
+    for ix in prange(nx):
+        for iy in range(ny):
+            for iz in range(nz):
+                beta[(ix * ny + iy) * nz + iz] = total_extinction(grid, ix, iy, iz)
+    return beta
+
+
+# ----------------------------------------------------------------------------------------
+# Medium-dependent terms of one record
+# ----------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def segment_optical_depth(grid, beta, S, k, use_crossings, periodic, gradient, weight):
+    """Optical depth of segment k (record k - 1 to record k) under ``grid``.
+
+    With ``use_crossings`` it sums beta[voxel] x length over the stored crossings; otherwise
+    it walks the segment again (:func:`march` limited to ``length[k]``). Both add the same
+    products in the same order. With an array ``gradient``, ``weight`` x length is added to
+    every crossed voxel (the segment's part of the score function, for weight = -W_k).
+    """
+    ny = grid.y_edges.size - 1
+    nz = grid.z_edges.size - 1
+    if use_crossings:
+        tau = 0.0
+        for c in range(S.crossing_start[k], S.crossing_start[k + 1]):
+            v = S.crossing_voxel[c]
+            length = S.crossing_length[c]
+            tau += beta[v] * length
+            if gradient is not None:
+                ix, iy, iz = decode_voxel(v, ny, nz)
+                add_to(gradient, ix, iy, iz, weight * length)
+        return tau
+    j = k - 1
+    ix, iy, iz = decode_voxel(S.voxel[j], ny, nz)
+    limit = S.length[k] if S.kind[k] == SCATTER else INF
+    return march(
+        grid, S.position[0, j], S.position[1, j], S.position[2, j], S.direction[0, k],
+        S.direction[1, k], S.direction[2, k], ix, iy, iz, INF, periodic, gradient, weight, limit,
+    )[7]
+
+
+@njit(cache=True)
+def segment_term(grid, beta, S, k, use_crossings, periodic):
+    """log of the medium-dependent sampling probability of segment k: log beta(x_k) - tau
+    for a segment ending in a scattering vertex, -tau for one ending on a face."""
+    tau = segment_optical_depth(grid, beta, S, k, use_crossings, periodic, None, 0.0)
+    if S.kind[k] == SCATTER:
+        b = beta[S.voxel[k]]
+        if b > 0.0:
+            return math.log(b) - tau
+        return -INF
+    return -tau
+
+
+@njit(cache=True)
+def scattering_cosine(S, k):
+    """Cosine of the scattering angle at record k (between segments k and k + 1)."""
+    return (
+        S.direction[0, k] * S.direction[0, k + 1]
+        + S.direction[1, k] * S.direction[1, k + 1]
+        + S.direction[2, k] * S.direction[2, k + 1]
+    )
+
+
+@njit(cache=True)
+def direction_term(grid, bank, S, k):
+    """log f_p,mixture at SCATTER record k for the direction the path took from it (Eq. 5:
+    the type choice by beta_s^(j) and that type's phase function sample the mixture)."""
+    ny = grid.y_edges.size - 1
+    nz = grid.z_edges.size - 1
+    ix, iy, iz = decode_voxel(S.voxel[k], ny, nz)
+    f = mixture_phase_function(grid, bank, ix, iy, iz, scattering_cosine(S, k))
+    if f > 0.0:
+        return math.log(f)
+    return -INF
+
+
+@njit(cache=True)
+def path_log_ratio(grid, bank, beta, S, p, use_crossings, periodic):
+    """log r of the whole stored path in slot p: mu(path | grid) / mu(path | reference)."""
+    a = S.path_start[p]
+    z = S.path_start[p + 1]
+    log_r = 0.0
+    for k in range(a + 1, z):
+        log_r += segment_term(grid, beta, S, k, use_crossings, periodic) - S.seg_ref[k]
+        if S.kind[k] == SCATTER and k + 1 < z:
+            log_r += direction_term(grid, bank, S, k) - S.dir_ref[k]
+    return log_r
+
+
+# ----------------------------------------------------------------------------------------
+# Re-evaluation of one stored path
+# ----------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def replay_path(
+    grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power, beta, S,
+    p, use_crossings, mode, image, residual, gradient, trail, scratch,
+):
+    """Re-evaluate stored path ``p`` under ``grid`` (the current medium M_t).
+
+    Event e (a SCATTER or GROUND record) sends local estimates with the weight
+    r_e x (source power x effective albedos of M_t x ground albedos x roulette factors),
+    r_e the prefix correction factor. RENDER adds them to ``image``. GRADIENT (Eq. 53)
+    deposits each event's own score terms (connection segment, vertex at the camera
+    angle) through :func:`local_estimate`, keeps S_e in ``scratch``, and after the path
+    walks it backwards: segment k gets -W_k l with W_k = sum_{e >= k} S_e and the sampled
+    vertex k the term of Eq. (49) weighted by sum_{e > k} S_e, as in
+    :func:`cloudct.mc.forward.trace_photon`, in one pass over the camera connections.
+
+    Returns ``(events, S, log r)``: local-estimation events, the residual-weighted sum of
+    the path's estimates (GRADIENT) and the log correction factor of the whole path.
+    """
+    ny = grid.y_edges.size - 1
+    nz = grid.z_edges.size - 1
+    a = S.path_start[p]
+    z = S.path_start[p + 1]
+    weight = power
+    log_r = 0.0
+    depth = 0
+    total = 0.0
+    inv_survival = 1.0 / rr_survival
+    for k in range(a + 1, z):
+        kind = S.kind[k]
+        log_r += segment_term(grid, beta, S, k, use_crossings, periodic) - S.seg_ref[k]
+        if kind == ESCAPE:
+            break
+        ix, iy, iz = decode_voxel(S.voxel[k], ny, nz)
+        if kind == GROUND:
+            event_albedo = ground_albedo
+        else:
+            weight *= effective_albedo(grid, ix, iy, iz)
+            event_albedo = -1.0
+        s_event = 0.0
+        w = weight * math.exp(log_r)
+        if w != 0.0:
+            if mode == GRADIENT:
+                s_event = local_estimate(
+                    grid, bank, cams, copies, periodic, S.position[0, k], S.position[1, k],
+                    S.position[2, k], ix, iy, iz, S.direction[0, k], S.direction[1, k],
+                    S.direction[2, k], w, event_albedo, mode, image, residual, gradient, trail,
+                )
+            else:
+                s_event = local_estimate(
+                    grid, bank, cams, copies, periodic, S.position[0, k], S.position[1, k],
+                    S.position[2, k], ix, iy, iz, S.direction[0, k], S.direction[1, k],
+                    S.direction[2, k], w, event_albedo, mode, image, residual, gradient,
+                )
+        if kind == GROUND:
+            weight *= ground_albedo
+        scratch[k - a] = s_event
+        total += s_event
+        depth += 1
+        if k + 1 < z:
+            if kind == SCATTER:
+                log_r += direction_term(grid, bank, S, k) - S.dir_ref[k]
+            if depth >= rr_depth:
+                weight *= inv_survival
+    if mode == GRADIENT and total != 0.0:
+        later = 0.0  # sum of S_e over the events after record k
+        for k in range(z - 1, a, -1):
+            kind = S.kind[k]
+            if kind == ESCAPE:
+                continue
+            if kind == SCATTER and k + 1 < z and later != 0.0:
+                ix, iy, iz = decode_voxel(S.voxel[k], ny, nz)
+                add_to(
+                    gradient, ix, iy, iz,
+                    later * scattering_log_derivative(
+                        grid, bank, CLOUD, ix, iy, iz, scattering_cosine(S, k)
+                    ),
+                )
+            later += scratch[k - a]  # now W_k = sum over the events at or after k
+            if later != 0.0:
+                segment_optical_depth(grid, beta, S, k, use_crossings, periodic, gradient, -later)
+    return depth, total, log_r
+
+
+# ----------------------------------------------------------------------------------------
+# Batch kernels (parallel over batches; batch b owns photon-order positions b * P + k)
+# ----------------------------------------------------------------------------------------
+
+
+@njit(parallel=True, cache=True)
+def replay_batches(
+    grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power, beta, S,
+    use_crossings, per_batch, first, last, mode, images, residual, gradients, log_ratio, events,
+    trail_capacity, max_records,
+):
+    """Re-evaluate the stored paths at photon-order positions ``b * per_batch + k`` for k in
+    ``first .. last - 1`` of every batch b: RENDER into ``images[b]``, GRADIENT into
+    ``gradients[b]``; ``log_ratio[j]`` receives the whole-path log correction factor of the
+    path at photon-order position j. Each batch visits its paths in photon order, whatever
+    the storage order (sorted or not), so the sums are bitwise independent of the sorting.
+    """
+    for b in prange(images.shape[0]):
+        scratch = np.zeros(max_records)
+        trail = Trail(
+            np.zeros(trail_capacity, np.int64), np.zeros(trail_capacity), np.zeros(1, np.int64),
+            np.zeros(1),
+        )
+        n = 0
+        for k in range(first, last):
+            j = b * per_batch + k
+            p = S.slot[j]
+            depth, _, log_r = replay_path(
+                grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power,
+                beta, S, p, use_crossings, mode, images[b], residual, gradients[b], trail,
+                scratch,
+            )
+            log_ratio[j] = log_r
+            n += depth
+        events[b] += n
+
+
+@njit(parallel=True, cache=True)
+def log_ratio_batches(grid, bank, beta, S, use_crossings, periodic, per_batch, log_ratio):
+    """Whole-path log correction factors of all stored paths, by photon-order position."""
+    nbatch = S.slot.size // per_batch
+    for b in prange(nbatch):
+        for k in range(per_batch):
+            j = b * per_batch + k
+            log_ratio[j] = path_log_ratio(grid, bank, beta, S, S.slot[j], use_crossings, periodic)
+
+
+@njit(parallel=True, cache=True)
+def reference_terms(grid, bank, beta, S, use_crossings, periodic, per_batch, seg_out, dir_out):
+    """The segment and direction terms of every record under ``grid`` (the reference)."""
+    nbatch = S.slot.size // per_batch
+    for b in prange(nbatch):
+        for k in range(per_batch):
+            p = S.slot[b * per_batch + k]
+            a = S.path_start[p]
+            z = S.path_start[p + 1]
+            seg_out[a] = 0.0
+            dir_out[a] = 0.0
+            for r in range(a + 1, z):
+                seg_out[r] = segment_term(grid, beta, S, r, use_crossings, periodic)
+                if S.kind[r] == SCATTER and r + 1 < z:
+                    dir_out[r] = direction_term(grid, bank, S, r)
+                else:
+                    dir_out[r] = 0.0
+
+
+# ----------------------------------------------------------------------------------------
+# Recording
+# ----------------------------------------------------------------------------------------
+
+
+@njit(parallel=True, cache=True)
+def count_records(
+    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
+    per_batch, first, last, counts,
+):
+    """Records of photons ``b * per_batch + k`` (k in first .. last - 1) into counts."""
+    nbatch = counts.size // per_batch
+    image = np.zeros((1, 1, 1))
+    for b in prange(nbatch):
+        for k in range(first, last):
+            i = b * per_batch + k
+            counts[i] = trace_photon(
+                grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
+                seed, i, COUNT, image, image, image, 0.0,
+            )[0]
+
+
+@njit(parallel=True, cache=True)
+def write_records(
+    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
+    per_batch, first, last, path_start, record,
+):
+    """Trace the same photons again and write their records (rows from path_start)."""
+    nbatch = (path_start.size - 1) // per_batch
+    image = np.zeros((1, 1, 1))
+    for b in prange(nbatch):
+        for k in range(first, last):
+            i = b * per_batch + k
+            trace_photon(
+                grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
+                seed, i, RECORD, image, image, image, 0.0, record, path_start[i],
+            )
+
+
+@njit(cache=True)
+def _walk_segment(grid, S, k, periodic, tau_target, limit, trail):
+    ny = grid.y_edges.size - 1
+    nz = grid.z_edges.size - 1
+    j = k - 1
+    ix, iy, iz = decode_voxel(S.voxel[j], ny, nz)
+    trail.count[0] = 0
+    trail.distance[0] = 0.0
+    march(
+        grid, S.position[0, j], S.position[1, j], S.position[2, j], S.direction[0, k],
+        S.direction[1, k], S.direction[2, k], ix, iy, iz, tau_target, periodic, None, 0.0, limit,
+        trail,
+    )
+
+
+@njit(parallel=True, cache=True)
+def measure_segments(grid, S, periodic, per_batch, count_crossings, crossings):
+    """Turn the sampled optical depths in ``S.length`` into segment lengths (walking each
+    segment again under the reference medium, which stops at the same point), and count
+    the crossings of the length-limited walks the stores use (when ``count_crossings``)."""
+    nbatch = S.slot.size // per_batch
+    for b in prange(nbatch):
+        trail = Trail(np.zeros(0, np.int64), np.zeros(0), np.zeros(1, np.int64), np.zeros(1))
+        for i in range(b * per_batch, (b + 1) * per_batch):
+            a = S.path_start[i]
+            z = S.path_start[i + 1]
+            crossings[a] = 0
+            for k in range(a + 1, z):
+                _walk_segment(grid, S, k, periodic, S.length[k], INF, trail)
+                S.length[k] = trail.distance[0]
+                if count_crossings:
+                    limit = S.length[k] if S.kind[k] == SCATTER else INF
+                    _walk_segment(grid, S, k, periodic, INF, limit, trail)
+                    crossings[k] = trail.count[0]
+                else:
+                    crossings[k] = 0
+
+
+@njit(parallel=True, cache=True)
+def write_crossings(grid, S, periodic, per_batch):
+    """Record every segment's crossings (flat voxel, length) into the CSR arrays of S."""
+    nbatch = S.slot.size // per_batch
+    bad = 0
+    for b in prange(nbatch):
+        for i in range(b * per_batch, (b + 1) * per_batch):
+            for k in range(S.path_start[i] + 1, S.path_start[i + 1]):
+                c0 = S.crossing_start[k]
+                c1 = S.crossing_start[k + 1]
+                trail = Trail(
+                    S.crossing_voxel[c0:c1], S.crossing_length[c0:c1], np.zeros(1, np.int64),
+                    np.zeros(1),
+                )
+                limit = S.length[k] if S.kind[k] == SCATTER else INF
+                _walk_segment(grid, S, k, periodic, INF, limit, trail)
+                if trail.count[0] != c1 - c0:
+                    bad += 1
+    return bad
