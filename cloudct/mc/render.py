@@ -275,6 +275,8 @@ def _cli_render(args: argparse.Namespace) -> int:
     output = Path(args.output)
     if output.exists() and not args.overwrite:
         raise FileExistsError(f"{output} exists (use --overwrite)")
+    # compile (or load from the numba cache) first, so that the reported rate is the render's
+    render(medium, scene, photons=2, method=args.method, batches=2, progress=False)
     images = render(
         medium, scene, photons=args.photons, method=args.method, seed=args.seed,
         batches=args.batches, progress=None,

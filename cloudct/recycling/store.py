@@ -1,0 +1,375 @@
+"""The path store: sampled forward paths kept for re-evaluation under other media.
+
+A store is a structure of arrays in CSR form (:class:`~cloudct.recycling.kernels.StoreArrays`):
+per path the offset of its records; per record (ENTRY, each SCATTER or GROUND vertex, and
+the ESCAPE of a path that leaves the medium) the position, the direction of the segment
+arriving there, that segment's length, the kind, the flat voxel index, and the reference
+medium's segment and direction terms of the sampling pdf, so that the reference medium
+itself need not be kept. Two storage modes:
+
+- ``"crossings"``: every segment's voxel crossings (flat voxel, length) are stored too, so a
+  segment's optical depth under a new medium is a sum over them (fast, memory-hungry);
+- ``"lean"``: segments are walked again through the grid when needed (less memory).
+
+Both give bitwise identical results. ``"auto"`` picks ``"crossings"`` when it fits the
+memory budget and ``"lean"`` otherwise.
+
+Recording traces every photon twice with the same counter-based random streams (same
+photon index and seed, same path): a first pass counts each path's records, a cumulative
+sum gives the CSR offsets, the second pass writes them (:data:`cloudct.mc.forward.COUNT`,
+:data:`~cloudct.mc.forward.RECORD`). Photons are split into batches as in
+:func:`cloudct.mc.render.render_batches` (batch b owns photons b * P .. (b + 1) * P - 1), so
+the re-evaluated images and gradients come with standard errors over batches.
+
+Path sorting (seed paper Sec. 5.3): :func:`sort_paths` reorders each batch's paths by their
+number of records, so that paths of the same length lie together (what GPU threads in a
+group need). The CPU kernels visit each batch's paths in photon order through ``slot``, so
+sorted and unsorted stores give bitwise identical results.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import xarray as xr
+
+from cloudct.mc.forward import ENTRY, ESCAPE, GROUND, SCATTER, PathRecord
+from cloudct.mc.render import kernel_inputs, run_in_rounds
+from cloudct.mc.scene import Scene
+from cloudct.recycling.kernels import (
+    StoreArrays,
+    count_records,
+    flat_total_extinction,
+    measure_segments,
+    reference_terms,
+    write_crossings,
+    write_records,
+)
+
+STORAGE = ("auto", "crossings", "lean")
+
+#: Bytes of one record besides the voxel index: position and direction (6 float64),
+#: length, the two reference terms (3 float64) and the kind (int8).
+RECORD_BYTES = 6 * 8 + 3 * 8 + 1
+#: Bytes of one stored path: CSR offset, storage slot and photon index (int64 each).
+PATH_BYTES = 3 * 8
+
+
+class MemoryBudgetError(ValueError):
+    """The memory budget cannot hold the paths in the requested storage mode."""
+
+
+def voxel_dtype(shape: tuple[int, int, int]) -> type:
+    """int32 voxel indices where they fit, else int64."""
+    return np.int32 if int(np.prod(shape)) < 2**31 else np.int64
+
+
+def lean_bytes(records: int, paths: int, voxel_size: int) -> int:
+    """Bytes of a lean store with ``records`` records of ``paths`` paths."""
+    return records * (RECORD_BYTES + voxel_size) + paths * PATH_BYTES + 8 + 8
+
+
+def crossings_bytes(records: int, crossings: int, voxel_size: int) -> int:
+    """Bytes that the crossings add to a lean store (CSR offsets and the crossings)."""
+    return records * 8 + crossings * (voxel_size + 8)
+
+
+@dataclass
+class PathStore:
+    """Stored forward paths of one scene, sampled under a reference medium.
+
+    ``arrays`` holds the paths (storage order); ``photon[p]`` is the photon index of the path
+    in slot p, and ``arrays.slot[j]`` the slot of photon j. Batch b holds photons
+    ``b * per_batch .. (b + 1) * per_batch - 1``.
+    """
+
+    arrays: StoreArrays
+    photon: np.ndarray
+    scene: Scene
+    edges: tuple[np.ndarray, np.ndarray, np.ndarray]
+    seed: int
+    batches: int
+    per_batch: int
+    rr_depth: int
+    rr_survival: float
+    storage: str
+    sorted: bool = False
+    info: dict = field(default_factory=dict)
+
+    @property
+    def paths(self) -> int:
+        """Number of stored paths (photons)."""
+        return int(self.photon.size)
+
+    @property
+    def records(self) -> int:
+        """Number of records (entries, vertices, escapes)."""
+        return int(self.arrays.kind.size)
+
+    @property
+    def events(self) -> int:
+        """Number of stored scattering and ground events (the local-estimation events)."""
+        kind = self.arrays.kind
+        return int(np.count_nonzero((kind == SCATTER) | (kind == GROUND)))
+
+    @property
+    def crossings(self) -> int:
+        """Number of stored voxel crossings (0 for lean storage)."""
+        return int(self.arrays.crossing_voxel.size)
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the store's arrays."""
+        return int(sum(a.nbytes for a in self.arrays) + self.photon.nbytes)
+
+    @property
+    def bytes_per_event(self) -> float:
+        """Store bytes per stored scattering (or ground) event."""
+        return self.nbytes / max(self.events, 1)
+
+    @property
+    def max_records(self) -> int:
+        """Records of the longest path."""
+        return int(np.max(np.diff(self.arrays.path_start))) if self.paths else 0
+
+    def record_counts(self) -> np.ndarray:
+        """Records per path, in photon order."""
+        return np.diff(self.arrays.path_start)[self.arrays.slot]
+
+    def summary(self) -> dict:
+        """Sizes and memory of the store, for logs and benchmarks."""
+        return {
+            "storage": self.storage,
+            "sorted": self.sorted,
+            "paths": self.paths,
+            "records": self.records,
+            "events": self.events,
+            "crossings": self.crossings,
+            "bytes": self.nbytes,
+            "bytes_per_event": self.bytes_per_event,
+            "bytes_per_path": self.nbytes / max(self.paths, 1),
+            "seed": self.seed,
+            **self.info,
+        }
+
+
+def _budget_message(budget: float, need: int, what: str, batches: int) -> str:
+    per_batch = need / batches
+    text = (
+        f"memory_budget of {budget / 2**20:.3g} MiB cannot hold the paths: {what} storage "
+        f"needs {need / 2**20:.3g} MiB ({per_batch / 2**20:.3g} MiB per batch of photons)"
+    )
+    if budget < per_batch:
+        text += "; the budget is too small for even one batch"
+    return text + ". Raise memory_budget, use fewer photons, or storage='lean'/'auto'."
+
+
+def record_paths(
+    medium: xr.Dataset,
+    scene: Scene,
+    *,
+    photons: int,
+    seed: int = 0,
+    batches: int = 32,
+    storage: str = "auto",
+    memory_budget: float | None = None,
+    sort: bool = True,
+    rr_depth: int = 100,
+    rr_survival: float = 0.95,
+    progress: bool | None = False,
+) -> PathStore:
+    """Sample ``photons`` forward paths under ``medium`` (the reference) and store them.
+
+    ``photons`` is rounded up to a multiple of ``batches``; photon i follows the same path
+    as photon i of :func:`cloudct.mc.render.render` with the same seed. ``memory_budget``
+    (bytes, None for no limit) bounds the store; ``storage`` is ``"auto"``,
+    ``"crossings"`` or ``"lean"``. A budget that cannot hold the paths raises
+    :class:`MemoryBudgetError`.
+    """
+    if storage not in STORAGE:
+        raise ValueError(f"storage must be one of {STORAGE}, got {storage!r}")
+    if int(photons) < 1:
+        raise ValueError(f"photons must be a positive count, got {photons}")
+    if int(batches) < 2:
+        raise ValueError(f"batches must be at least 2 for standard errors, got {batches}")
+    if not 0.0 < rr_survival <= 1.0 or rr_depth < 1:
+        raise ValueError("rr_survival must be in (0, 1] and rr_depth >= 1")
+    if memory_budget is not None and not memory_budget > 0:
+        raise ValueError(f"memory_budget must be a positive number of bytes, got {memory_budget}")
+    start_time = time.perf_counter()
+    k = kernel_inputs(medium, scene)
+    shape = k.grid.extinction.shape[1:]
+    vdtype = voxel_dtype(shape)
+    vsize = np.dtype(vdtype).itemsize
+    per_batch = math.ceil(int(photons) / batches)
+    npaths = per_batch * batches
+    run_args = (
+        k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, rr_depth, rr_survival,
+        int(seed), per_batch,
+    )
+
+    # pass 1: records per path, CSR offsets
+    counts = np.zeros(npaths, dtype=np.int64)
+    run_in_rounds(
+        lambda first, last: count_records(*run_args, first, last, counts),
+        per_batch, batches, progress, unit="photon", desc="count paths",
+    )
+    path_start = np.zeros(npaths + 1, dtype=np.int64)
+    np.cumsum(counts, out=path_start[1:])
+    del counts
+    nrec = int(path_start[-1])
+    lean = lean_bytes(nrec, npaths, vsize)
+    if memory_budget is not None and lean > memory_budget:
+        raise MemoryBudgetError(_budget_message(memory_budget, lean, "lean", batches))
+
+    # pass 2: the records themselves
+    record = PathRecord(
+        position=np.empty((3, nrec)),
+        direction=np.empty((3, nrec)),
+        optical_depth=np.empty(nrec),
+        kind=np.empty(nrec, dtype=np.int8),
+        voxel=np.empty(nrec, dtype=vdtype),
+    )
+    run_in_rounds(
+        lambda first, last: write_records(*run_args, first, last, path_start, record),
+        per_batch, batches, progress, unit="photon", desc="record paths",
+    )
+    slot = np.arange(npaths, dtype=np.int64)
+    empty_cross = (np.zeros(1, np.int64), np.zeros(0, vdtype), np.zeros(0))
+    arrays = StoreArrays(
+        path_start, slot, record.position, record.direction, record.optical_depth, record.kind,
+        record.voxel, np.empty(nrec), np.empty(nrec), *empty_cross,
+    )
+
+    # segment lengths (from the sampled optical depths) and crossing counts
+    count_crossings = storage != "lean"
+    crossings_per_record = np.zeros(nrec, dtype=np.int64)
+    measure_segments(k.grid, arrays, k.periodic, per_batch, count_crossings, crossings_per_record)
+    chosen = "lean"
+    if count_crossings:
+        ncross = int(crossings_per_record.sum())
+        full = lean + crossings_bytes(nrec, ncross, vsize)
+        fits = memory_budget is None or full <= memory_budget
+        if storage == "crossings" and not fits:
+            raise MemoryBudgetError(_budget_message(memory_budget, full, "crossings", batches))
+        if fits:
+            chosen = "crossings"
+            crossing_start = np.zeros(nrec + 1, dtype=np.int64)
+            np.cumsum(crossings_per_record, out=crossing_start[1:])
+            del crossings_per_record
+            arrays = arrays._replace(
+                crossing_start=crossing_start,
+                crossing_voxel=np.empty(ncross, dtype=vdtype),
+                crossing_length=np.empty(ncross),
+            )
+            bad = write_crossings(k.grid, arrays, k.periodic, per_batch)
+            if bad:
+                raise RuntimeError(f"{bad} segments crossed a different number of voxels")
+    # the reference medium's terms, computed as every re-evaluation computes them
+    beta = flat_total_extinction(k.grid)
+    reference_terms(
+        k.grid, k.bank, beta, arrays, chosen == "crossings", k.periodic, per_batch,
+        arrays.seg_ref, arrays.dir_ref,
+    )
+    store = PathStore(
+        arrays=arrays,
+        photon=np.arange(npaths, dtype=np.int64),
+        scene=scene,
+        edges=tuple(np.array(e, dtype=float) for e in k.edges),
+        seed=int(seed),
+        batches=int(batches),
+        per_batch=per_batch,
+        rr_depth=int(rr_depth),
+        rr_survival=float(rr_survival),
+        storage=chosen,
+        info={"record_time": 0.0, "memory_budget": memory_budget},
+    )
+    if sort:
+        store = sort_paths(store)
+    store.info["record_time"] = time.perf_counter() - start_time
+    return store
+
+
+def _gather_ranges(starts: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Concatenated ranges starts[i] .. ends[i] - 1 and their new CSR offsets."""
+    lengths = ends - starts
+    offsets = np.zeros(lengths.size + 1, dtype=np.int64)
+    np.cumsum(lengths, out=offsets[1:])
+    index = np.repeat(starts - offsets[:-1], lengths) + np.arange(offsets[-1], dtype=np.int64)
+    return index, offsets
+
+
+def sort_paths(store: PathStore) -> PathStore:
+    """A copy of ``store`` with each batch's paths stored in order of their number of
+    records (stable, so equal lengths keep photon order). Batches keep their paths, and the
+    kernels visit them in photon order: results are bitwise those of the unsorted store."""
+    check_not_empty(store)
+    a = store.arrays
+    lengths = np.diff(a.path_start)
+    order = np.empty(store.paths, dtype=np.int64)  # new slot -> old slot
+    for b in range(store.batches):
+        photons = np.arange(b * store.per_batch, (b + 1) * store.per_batch)
+        old_slots = a.slot[photons]
+        order[photons] = old_slots[np.argsort(lengths[old_slots], kind="stable")]
+    rec, path_start = _gather_ranges(a.path_start[order], a.path_start[order + 1])
+    photon = store.photon[order]
+    slot = np.empty_like(a.slot)
+    slot[photon] = np.arange(store.paths, dtype=np.int64)
+    if store.storage == "crossings":
+        cross, crossing_start = _gather_ranges(a.crossing_start[rec], a.crossing_start[rec + 1])
+        crossing_voxel = a.crossing_voxel[cross]
+        crossing_length = a.crossing_length[cross]
+    else:
+        crossing_start, crossing_voxel, crossing_length = (
+            a.crossing_start, a.crossing_voxel, a.crossing_length,
+        )
+    arrays = StoreArrays(
+        path_start=path_start,
+        slot=slot,
+        position=np.ascontiguousarray(a.position[:, rec]),
+        direction=np.ascontiguousarray(a.direction[:, rec]),
+        length=a.length[rec],
+        kind=a.kind[rec],
+        voxel=a.voxel[rec],
+        seg_ref=a.seg_ref[rec],
+        dir_ref=a.dir_ref[rec],
+        crossing_start=crossing_start,
+        crossing_voxel=crossing_voxel,
+        crossing_length=crossing_length,
+    )
+    return replace(store, arrays=arrays, photon=photon, sorted=True, info=dict(store.info))
+
+
+def check_not_empty(store: PathStore) -> None:
+    """Raise ValueError for a store without paths."""
+    if store.paths == 0 or store.records == 0:
+        raise ValueError("the path store is empty: record paths (photons > 0) first")
+
+
+def check_same_grid(store: PathStore, edges: tuple[np.ndarray, ...]) -> None:
+    """Raise ValueError when a medium's grid (cell edges) is not the store's."""
+    shape = tuple(e.size - 1 for e in store.edges)
+    other = tuple(np.asarray(e).size - 1 for e in edges)
+    if shape != other or not all(
+        np.array_equal(np.asarray(e), f) for e, f in zip(edges, store.edges, strict=True)
+    ):
+        raise ValueError(
+            f"the medium's grid {other} (cell edges) differs from the grid {shape} the paths "
+            "were recorded on; path recycling needs the same grid (resample the paths)"
+        )
+
+
+__all__ = [
+    "ENTRY",
+    "ESCAPE",
+    "GROUND",
+    "SCATTER",
+    "STORAGE",
+    "MemoryBudgetError",
+    "PathStore",
+    "record_paths",
+    "sort_paths",
+]
