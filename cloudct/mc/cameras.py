@@ -16,6 +16,7 @@ Eqs. (37)-(39) with the box-filter detector response W_d = 1 / Omega).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -118,7 +119,7 @@ def project(cams, view, px, py, pz):
         return -1, -1, 0.0, 0.0, 0.0, 0.0
     col = min(int((u + hw) / (2.0 * hw) * cams.ncols), cams.ncols - 1)
     row = min(int((hh - v) / (2.0 * hh) * cams.nrows), cams.nrows - 1)
-    r = np.sqrt(dx * dx + dy * dy + dz * dz)
+    r = math.sqrt(dx * dx + dy * dy + dz * dz)
     # r^2 * Omega = r^2 * a * cos^3(alpha) = a * depth^3 / r
     inverse_r2_omega = r / (cams.pixel_area[view] * depth * depth * depth)
     return row, col, -dx / r, -dy / r, -dz / r, inverse_r2_omega
@@ -138,7 +139,7 @@ def pixel_ray(cams, view, row, col, xi_u, xi_v):
     dx = cams.forward[view, 0] + u * cams.right[view, 0] + v * cams.up[view, 0]
     dy = cams.forward[view, 1] + u * cams.right[view, 1] + v * cams.up[view, 1]
     dz = cams.forward[view, 2] + u * cams.right[view, 2] + v * cams.up[view, 2]
-    norm = np.sqrt(dx * dx + dy * dy + dz * dz)
+    norm = math.sqrt(dx * dx + dy * dy + dz * dz)
     return dx / norm, dy / norm, dz / norm
 
 

@@ -21,7 +21,8 @@ import math
 import numpy as np
 import xarray as xr
 
-from cloudct.mc.forward import GRADIENT, forward_batches
+from cloudct.mc.backend import forward_runner, resolve_backend
+from cloudct.mc.forward import GRADIENT
 from cloudct.mc.render import kernel_inputs, run_in_rounds
 from cloudct.mc.scene import Scene
 
@@ -49,8 +50,11 @@ def score_function_gradient(
     rr_depth: int = 100,
     rr_survival: float = 0.95,
     progress: bool | None = None,
+    backend: str = "cpu",
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """sum_d residual_d dI_d / d beta_cloud per voxel by the path score function.
+
+    ``backend``: ``"cpu"``, ``"cuda"`` or ``"auto"`` (:mod:`cloudct.mc.backend`).
 
     Returns ``(mean, std_error, info)`` with arrays over (x, y, z) and ``info`` holding the
     photon count, path vertices and wall time.
@@ -64,16 +68,18 @@ def score_function_gradient(
     no_images = np.zeros((batches, 1, 1, 1))
     events = np.zeros(batches, dtype=np.int64)
 
-    def run(first: int, last: int) -> None:
-        forward_batches(
-            k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, rr_depth,
-            rr_survival, seed, per_batch, first, last, GRADIENT, no_images, residual,
-            gradients, events,
-        )
-
-    wall = run_in_rounds(run, per_batch, batches, progress, unit="photon", desc="gradient")
+    backend = resolve_backend(backend)
+    run = forward_runner(
+        backend, k, rr_depth, rr_survival, seed, per_batch, GRADIENT, no_images, residual,
+        gradients, events,
+    )
+    wall = run_in_rounds(
+        run, per_batch, batches, progress, unit="photon", desc="gradient",
+        max_rounds=run.max_rounds,
+    )
     batch_means = gradients / per_batch
-    info = {"photons": per_batch * batches, "events": int(events.sum()), "wall_time": wall}
+    info = {"photons": per_batch * batches, "events": int(events.sum()), "wall_time": wall,
+            "backend": backend}
     return (
         batch_means.mean(axis=0),
         batch_means.std(axis=0, ddof=1) / math.sqrt(batches),

@@ -24,9 +24,9 @@ import numpy as np
 import xarray as xr
 from tqdm.auto import tqdm
 
-from cloudct.mc.backward import backward_batches
+from cloudct.mc.backend import backward_runner, forward_runner, resolve_backend
 from cloudct.mc.cameras import CameraArrays, camera_arrays
-from cloudct.mc.forward import RENDER, forward_batches
+from cloudct.mc.forward import RENDER
 from cloudct.mc.scene import Scene, check_scene, periodic_copy_ranges, single_cloud_scene
 from cloudct.mc.sun import SunArrays, sun_arrays
 from cloudct.medium import cell_edges, is_optical, load_medium, validate_medium
@@ -49,6 +49,7 @@ def render(
     rr_depth: int = 100,
     rr_survival: float = 0.95,
     progress: bool | None = None,
+    backend: str = "cpu",
 ) -> xr.Dataset:
     """Images of ``medium`` seen by the cameras of ``scene``.
 
@@ -72,10 +73,13 @@ def render(
         probability ``rr_survival`` (medium-independent, unbiased).
     progress
         Show a progress bar (None: only on a terminal).
+    backend
+        ``"cpu"``, ``"cuda"`` or ``"auto"`` (CUDA where a GPU is available, else the CPU
+        with a warning); see :mod:`cloudct.mc.backend`. Same seed, same random streams.
     """
     batch_means, info = render_batches(
         medium, scene, photons=photons, method=method, seed=seed, batches=batches,
-        rr_depth=rr_depth, rr_survival=rr_survival, progress=progress,
+        rr_depth=rr_depth, rr_survival=rr_survival, progress=progress, backend=backend,
     )
     radiance = batch_means.mean(axis=0)
     std_error = batch_means.std(axis=0, ddof=1) / math.sqrt(batches)
@@ -93,6 +97,7 @@ def render_batches(
     rr_depth: int = 100,
     rr_survival: float = 0.95,
     progress: bool | None = None,
+    backend: str = "cpu",
 ) -> tuple[np.ndarray, dict]:
     """The images of each independent batch, float64[batches, view, row, col], and the run's
     attributes; :func:`render` averages them. Arguments as for :func:`render`."""
@@ -111,25 +116,24 @@ def render_batches(
     no_residual = np.zeros((1, 1, 1))
     no_gradients = np.zeros((batches, 1, 1, 1))
 
-    def run(first: int, last: int) -> None:
-        if method == "forward":
-            forward_batches(
-                k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, rr_depth,
-                rr_survival, seed, per_batch, first, last, RENDER, images, no_residual,
-                no_gradients, events,
-            )
-        else:
-            backward_batches(
-                k.grid, k.bank, k.cams, k.sun, k.periodic, k.ground, rr_depth, rr_survival,
-                seed, per_batch, first, last, images, events,
-            )
+    backend = resolve_backend(backend)
+    if method == "forward":
+        run = forward_runner(
+            backend, k, rr_depth, rr_survival, seed, per_batch, RENDER, images, no_residual,
+            no_gradients, events,
+        )
+    else:
+        run = backward_runner(backend, k, rr_depth, rr_survival, seed, per_batch, images, events)
 
     unit = "photon" if method == "forward" else "sample/px"
-    wall = run_in_rounds(run, per_batch, batches, progress, unit=unit, desc=method)
+    wall = run_in_rounds(
+        run, per_batch, batches, progress, unit=unit, desc=method, max_rounds=run.max_rounds
+    )
 
     info = dict(
         method=method, photons=per_batch * batches, seed=seed, batches=batches,
         events=int(events.sum()), wall_time=wall, rr_depth=rr_depth, rr_survival=rr_survival,
+        backend=backend,
     )
     return images / per_batch, info
 
@@ -168,11 +172,13 @@ def kernel_inputs(medium: xr.Dataset, scene: Scene) -> KernelInputs:
 
 def run_in_rounds(
     run: Callable[[int, int], None], per_batch: int, batches: int, progress: bool | None,
-    unit: str, desc: str,
+    unit: str, desc: str, max_rounds: int = 50,
 ) -> float:
-    """Call ``run(first, last)`` over up to 50 rounds of the per-batch sample range, with a
-    progress bar; returns the wall time in seconds."""
-    rounds = np.unique(np.linspace(0, per_batch, min(per_batch, 50) + 1).astype(np.int64))
+    """Call ``run(first, last)`` over up to ``max_rounds`` rounds of the per-batch sample
+    range, with a progress bar; returns the wall time in seconds."""
+    rounds = np.unique(
+        np.linspace(0, per_batch, min(per_batch, max_rounds) + 1).astype(np.int64)
+    )
     disable = None if progress is None else not progress
     start = time.perf_counter()
     with tqdm(total=per_batch * batches, disable=disable, unit=unit, desc=desc) as bar:

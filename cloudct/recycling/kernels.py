@@ -383,10 +383,14 @@ def _walk_segment(grid, S, k, periodic, tau_target, limit, trail):
 
 
 @njit(parallel=True, cache=True)
-def measure_segments(grid, S, periodic, per_batch, count_crossings, crossings):
+def measure_segments(grid, S, length, periodic, per_batch, count_crossings, crossings):
     """Turn the sampled optical depths in ``S.length`` into segment lengths (walking each
     segment again under the reference medium, which stops at the same point), and count
-    the crossings of the length-limited walks the stores use (when ``count_crossings``)."""
+    the crossings of the length-limited walks the stores use (when ``count_crossings``).
+
+    ``length`` is ``S.length`` itself, passed on its own: with numba 0.68, an assignment
+    to an element of an array held in a NamedTuple, made directly in a ``prange`` body, is
+    lost (writes from called functions are kept)."""
     nbatch = S.slot.size // per_batch
     for b in prange(nbatch):
         trail = Trail(np.zeros(0, np.int64), np.zeros(0), np.zeros(1, np.int64), np.zeros(1))
@@ -395,10 +399,10 @@ def measure_segments(grid, S, periodic, per_batch, count_crossings, crossings):
             z = S.path_start[i + 1]
             crossings[a] = 0
             for k in range(a + 1, z):
-                _walk_segment(grid, S, k, periodic, S.length[k], INF, trail)
-                S.length[k] = trail.distance[0]
+                _walk_segment(grid, S, k, periodic, length[k], INF, trail)
+                length[k] = trail.distance[0]
                 if count_crossings:
-                    limit = S.length[k] if S.kind[k] == SCATTER else INF
+                    limit = length[k] if S.kind[k] == SCATTER else INF
                     _walk_segment(grid, S, k, periodic, INF, limit, trail)
                     crossings[k] = trail.count[0]
                 else:

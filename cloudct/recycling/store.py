@@ -247,7 +247,10 @@ def record_paths(
     # segment lengths (from the sampled optical depths) and crossing counts
     count_crossings = storage != "lean"
     crossings_per_record = np.zeros(nrec, dtype=np.int64)
-    measure_segments(k.grid, arrays, k.periodic, per_batch, count_crossings, crossings_per_record)
+    measure_segments(
+        k.grid, arrays, arrays.length, k.periodic, per_batch, count_crossings,
+        crossings_per_record,
+    )
     chosen = "lean"
     if count_crossings:
         ncross = int(crossings_per_record.sum())

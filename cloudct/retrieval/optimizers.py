@@ -1,0 +1,76 @@
+"""Gradient-based updates of the cloud extinction, projected onto the feasible set.
+
+The feasible set is {beta >= 0, beta = 0 outside the mask} (the space-carved hull).
+Optimisers are small state machines whose state is a dict of arrays, so that a retrieval
+can checkpoint and resume them exactly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def project(beta: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    """Euclidean projection onto {beta >= 0, beta = 0 outside ``mask``}."""
+    beta = np.maximum(beta, 0.0)
+    if mask is not None:
+        beta = np.where(mask, beta, 0.0)
+    return beta
+
+
+class Adam:
+    """Adam (Kingma & Ba 2014), as in the seed paper: first and second moment decays
+    ``beta1`` = 0.9 and ``beta2`` = 0.999, step size ``step`` in 1/km per iteration.
+
+        m <- b1 m + (1 - b1) g,  v <- b2 v + (1 - b2) g^2,
+        x <- x - step * (m / (1 - b1^t)) / (sqrt(v / (1 - b2^t)) + eps)
+    """
+
+    name = "adam"
+
+    def __init__(
+        self, step: float = 2.0, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-12
+    ) -> None:
+        if step <= 0 or not 0 <= beta1 < 1 or not 0 <= beta2 < 1:
+            raise ValueError("Adam needs step > 0 and moment decays in [0, 1)")
+        self.step, self.beta1, self.beta2, self.eps = step, beta1, beta2, eps
+        self.state: dict[str, np.ndarray] = {}
+
+    def update(self, x: np.ndarray, grad: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+        """One step from ``x`` along the gradient ``grad``, projected."""
+        t = int(self.state.get("t", np.zeros(())) + 1)
+        m = self.state.get("m", np.zeros_like(x))
+        v = self.state.get("v", np.zeros_like(x))
+        m = self.beta1 * m + (1 - self.beta1) * grad
+        v = self.beta2 * v + (1 - self.beta2) * grad**2
+        m_hat = m / (1 - self.beta1**t)
+        v_hat = v / (1 - self.beta2**t)
+        self.state = {"t": np.array(t), "m": m, "v": v}
+        return project(x - self.step * m_hat / (np.sqrt(v_hat) + self.eps), mask)
+
+
+class MomentumSGD:
+    """Gradient descent with (heavy-ball) momentum: u <- mu u + g, x <- x - step u."""
+
+    name = "sgd"
+
+    def __init__(self, step: float, momentum: float = 0.9) -> None:
+        if step <= 0 or not 0 <= momentum < 1:
+            raise ValueError("SGD needs step > 0 and momentum in [0, 1)")
+        self.step, self.momentum = step, momentum
+        self.state: dict[str, np.ndarray] = {}
+
+    def update(self, x: np.ndarray, grad: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+        """One step from ``x`` along the gradient ``grad``, projected."""
+        u = self.momentum * self.state.get("u", np.zeros_like(x)) + grad
+        self.state = {"u": u}
+        return project(x - self.step * u, mask)
+
+
+def make_optimizer(name: str, step: float) -> Adam | MomentumSGD:
+    """An optimiser by name ("adam" or "sgd")."""
+    if name == "adam":
+        return Adam(step=step)
+    if name == "sgd":
+        return MomentumSGD(step=step)
+    raise ValueError(f"optimizer must be 'adam' or 'sgd', got {name!r}")

@@ -1,0 +1,357 @@
+"""Synthetic multi-view measurements: rendered images plus a camera noise model.
+
+:func:`synthesize_measurements` renders a medium with many photons
+(:func:`cloudct.mc.render.render`, forward estimator) and optionally adds camera noise
+(:class:`NoiseModel`). The result, a *measurement set*, is the render's images Dataset
+(``radiance`` over (view, row, col), the cameras as variables over ``view``, the sun and
+boundaries as attributes) with, in addition:
+
+* ``radiance_noise_std`` (view, row, col): the expected standard deviation of each measured
+  pixel about the true radiance: the noise model's and the render's Monte Carlo error added
+  in quadrature. Its inverse square is the natural loss weight.
+* attributes ``wavelength`` [micron], the noise parameters (``noise_model``,
+  ``noise_electrons``, ``noise_reference_radiance``, ``noise_read_electrons``,
+  ``noise_seed``), the render's ``photons`` and ``seed``, and the box and shape of the
+  medium's grid (``medium_box`` = x_min, x_max, y_min, y_max, z_min, z_max [km];
+  ``medium_shape`` = nx, ny, nz) so that a retrieval grid can be checked against them.
+
+Noise model (photon-transfer form, as for a CCD/CMOS sensor): a pixel of radiance L
+collects on average N = gain * L photo-electrons, with gain = ``electrons`` /
+``reference_radiance`` (``electrons`` is the mean count at the reference radiance; by
+default 1/pi, the radiance of a white Lambertian plate facing the sun). The count is
+Poisson distributed; read-out adds Gaussian noise of ``read_noise`` electrons rms; the
+measured radiance is the total divided by the gain:
+
+    L_measured = (Poisson(gain * L) + Normal(0, read_noise^2)) / gain,
+    E[L_measured] = L,     Var[L_measured] = L / gain + (read_noise / gain)^2.
+
+Measured radiances are not clipped at zero (clipping would bias dark pixels), so read
+noise can give slightly negative values, as a dark-subtracted camera does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from cloudct.mc.cameras import cameras_from_dataset
+from cloudct.mc.render import RADIANCE_UNITS, render, single_cloud_medium
+from cloudct.mc.scene import Scene, single_cloud_scene
+from cloudct.medium import cell_edges, is_microphysical, load_medium, validate_medium
+from cloudct.physics.mie import DEFAULT_WAVELENGTH
+from cloudct.physics.optics import to_optical
+
+#: Default number of photons of a synthetic measurement (forward estimator).
+DEFAULT_PHOTONS = 10_000_000
+#: Default reference radiance of the noise model: a white Lambertian plate facing the sun.
+WHITE_PLATE_RADIANCE = 1.0 / math.pi
+
+_IMAGE_DIMS = ("view", "row", "col")
+_SCENE_ATTRS = ("sun_zenith", "sun_azimuth", "boundary")
+
+
+class MeasurementError(ValueError):
+    """A measurement Dataset or file that does not follow the measurement schema."""
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Photon (shot) noise and Gaussian read noise of a camera, counted in electrons.
+
+    Attributes:
+        electrons: mean number of photo-electrons a pixel collects at ``reference_radiance``
+            (> 0); sets the gain = electrons / reference_radiance [electrons per unit
+            radiance]. The signal-to-noise ratio of a pixel at the reference radiance is
+            sqrt(electrons) without read noise.
+        read_noise: read-out noise [electrons rms], >= 0.
+        reference_radiance: the radiance at which a pixel collects ``electrons`` on average
+            (default 1/pi, a white Lambertian plate facing the sun).
+    """
+
+    electrons: float
+    read_noise: float = 0.0
+    reference_radiance: float = WHITE_PLATE_RADIANCE
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.electrons) and self.electrons > 0.0):
+            raise ValueError(f"noise electrons must be positive, got {self.electrons}")
+        if not (math.isfinite(self.read_noise) and self.read_noise >= 0.0):
+            raise ValueError(f"read noise must be >= 0 electrons, got {self.read_noise}")
+        if not (math.isfinite(self.reference_radiance) and self.reference_radiance > 0.0):
+            raise ValueError(
+                f"reference radiance must be positive, got {self.reference_radiance}"
+            )
+
+    @property
+    def gain(self) -> float:
+        """Electrons per unit radiance."""
+        return self.electrons / self.reference_radiance
+
+    def variance(self, radiance: np.ndarray) -> np.ndarray:
+        """Variance of a measured radiance about the true ``radiance`` (>= 0):
+        L / gain + (read_noise / gain)^2, in radiance units squared."""
+        return np.asarray(radiance) / self.gain + (self.read_noise / self.gain) ** 2
+
+    def apply(self, radiance: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """A noisy measurement of the true ``radiance`` (finite, >= 0), drawn from ``rng``."""
+        radiance = np.asarray(radiance, dtype=float)
+        if not np.all(np.isfinite(radiance)) or np.any(radiance < 0.0):
+            raise ValueError("the noise model needs finite, non-negative radiances")
+        electrons = rng.poisson(radiance * self.gain).astype(float)
+        electrons += rng.normal(0.0, self.read_noise, size=radiance.shape)
+        return electrons / self.gain
+
+
+def synthesize_measurements(
+    medium: xr.Dataset,
+    scene: Scene | None = None,
+    *,
+    photons: int = DEFAULT_PHOTONS,
+    seed: int = 0,
+    noise: NoiseModel | None = None,
+    noise_seed: int | None = None,
+    wavelength: float = DEFAULT_WAVELENGTH,
+    batches: int = 32,
+    progress: bool | None = None,
+) -> xr.Dataset:
+    """Synthetic measurements of ``medium``: a forward render plus optional camera noise.
+
+    Args:
+        medium: an optical or microphysical medium (microphysics is converted with the Mie
+            tables at ``wavelength``).
+        scene: cameras, sun and boundaries; default the seed paper's nine-camera
+            single-cloud geometry for the medium's box (:func:`single_cloud_scene`).
+        photons: forward photons of the render.
+        seed: seed of the render.
+        noise: the camera noise model, or None for noise-free images (the render's Monte
+            Carlo error is then the only noise).
+        noise_seed: seed of the noise draws (numpy's default generator); default ``seed``.
+        wavelength: [micron]. An optical medium that records its ``wavelength`` must match.
+        batches: independent batches of the render (for its standard errors).
+        progress: show a progress bar (None: only on a terminal).
+
+    Returns:
+        The measurement set described in the module docstring.
+
+    Raises:
+        ValueError: a bad medium, scene, photon count or a wavelength mismatch.
+    """
+    validate_medium(medium)
+    if not (math.isfinite(wavelength) and wavelength > 0.0):
+        raise ValueError(f"wavelength must be positive, got {wavelength}")
+    if is_microphysical(medium):
+        medium = to_optical(medium, wavelength=wavelength)
+    elif "wavelength" in medium.attrs and not np.isclose(
+        float(medium.attrs["wavelength"]), wavelength
+    ):
+        raise ValueError(
+            f"the medium's optics are for {medium.attrs['wavelength']} micron, "
+            f"not {wavelength} micron"
+        )
+    edges = cell_edges(medium)
+    if scene is None:
+        scene = single_cloud_scene(
+            np.array([e[0] for e in edges]), np.array([e[-1] for e in edges])
+        )
+    images = render(medium, scene, photons=photons, seed=seed, batches=batches,
+                    progress=progress)
+
+    clean = images["radiance"].values
+    mc_variance = images["radiance_std_error"].values ** 2
+    noise_seed = seed if noise_seed is None else int(noise_seed)
+    if noise is None:
+        measured, noise_variance = clean, np.zeros_like(clean)
+    else:
+        measured = noise.apply(clean, np.random.default_rng(noise_seed))
+        noise_variance = noise.variance(clean)
+
+    ds = images.copy()
+    ds["radiance"] = ds["radiance"].copy(data=measured)
+    ds["radiance"].attrs["long_name"] = "measured pixel-averaged radiance"
+    ds["radiance_std_error"].attrs["long_name"] = (
+        "Monte Carlo standard error of the rendered (noise-free) radiance"
+    )
+    ds["radiance_noise_std"] = (_IMAGE_DIMS, np.sqrt(noise_variance + mc_variance))
+    ds["radiance_noise_std"].attrs.update(
+        units=RADIANCE_UNITS,
+        long_name="expected standard deviation of the measured radiance",
+        comment="camera noise of the noise model and Monte Carlo error, in quadrature",
+    )
+    ds.attrs.update(
+        title="cloudct measurements",
+        wavelength=float(wavelength),
+        wavelength_units="micron",
+        medium_box=np.array([v for e in edges for v in (e[0], e[-1])], dtype=float),
+        medium_box_note="x_min, x_max, y_min, y_max, z_min, z_max of the medium [km]",
+        medium_shape=np.array([len(e) - 1 for e in edges], dtype=np.int32),
+        medium_source=str(medium.attrs.get("source", "")),
+        **_noise_attrs(noise, noise_seed),
+    )
+    return ds
+
+
+def _noise_attrs(noise: NoiseModel | None, noise_seed: int) -> dict:
+    """The noise model as netCDF attributes (``noise_model = "none"`` without noise)."""
+    if noise is None:
+        return {"noise_model": "none"}
+    return {
+        "noise_model": "poisson+gaussian",
+        "noise_electrons": float(noise.electrons),
+        "noise_reference_radiance": float(noise.reference_radiance),
+        "noise_read_electrons": float(noise.read_noise),
+        "noise_seed": int(noise_seed),
+        "noise_note": (
+            "mean photo-electrons = noise_electrons * radiance / noise_reference_radiance, "
+            "Poisson; plus Gaussian read noise of noise_read_electrons rms"
+        ),
+    }
+
+
+def noise_model_from_attrs(ds: xr.Dataset) -> NoiseModel | None:
+    """The noise model recorded in a measurement set (None for noise-free measurements)."""
+    if ds.attrs.get("noise_model", "none") == "none":
+        return None
+    return NoiseModel(
+        electrons=float(ds.attrs["noise_electrons"]),
+        read_noise=float(ds.attrs["noise_read_electrons"]),
+        reference_radiance=float(ds.attrs["noise_reference_radiance"]),
+    )
+
+
+def validate_measurements(ds: xr.Dataset) -> None:
+    """Check a measurement set; raise :class:`MeasurementError` naming the problem.
+
+    Required: ``radiance`` over (view, row, col), finite or NaN (NaN marks a masked pixel;
+    not all pixels masked); the camera variables (``position``, ``lookat``, ``up``, ``fov``,
+    ``nrows``, ``ncols``) agreeing with the image size; the scene attributes
+    (``sun_zenith``, ``sun_azimuth``, ``boundary``). ``radiance_noise_std`` and
+    ``radiance_std_error``, when present, must have the images' shape and be finite and
+    >= 0; ``wavelength``, when present, must be positive.
+    """
+    if "radiance" not in ds:
+        raise MeasurementError("measurements have no 'radiance' variable")
+    radiance = ds["radiance"]
+    if radiance.dims != _IMAGE_DIMS:
+        raise MeasurementError(f"radiance must be over {_IMAGE_DIMS}, got {radiance.dims}")
+    values = radiance.values
+    if np.any(np.isinf(values)):
+        raise MeasurementError("radiance has infinite values (use NaN to mask a pixel)")
+    if np.all(np.isnan(values)):
+        raise MeasurementError("every radiance pixel is NaN (masked)")
+    missing = [a for a in _SCENE_ATTRS if a not in ds.attrs]
+    if missing:
+        raise MeasurementError(f"scene attributes missing: {', '.join(missing)}")
+    try:
+        cameras = cameras_from_dataset(ds)
+        Scene.from_dataset(ds)
+    except ValueError as err:
+        raise MeasurementError(f"bad cameras or scene: {err}") from err
+    shape = values.shape
+    if len(cameras) != shape[0]:
+        raise MeasurementError(f"{len(cameras)} cameras but {shape[0]} views of radiance")
+    for i, cam in enumerate(cameras):
+        if (cam.nrows, cam.ncols) != shape[1:]:
+            raise MeasurementError(
+                f"camera {i} has {cam.nrows}x{cam.ncols} pixels, the images {shape[1]}x{shape[2]}"
+            )
+    for name in ("radiance_noise_std", "radiance_std_error"):
+        if name in ds:
+            error = ds[name].values
+            if ds[name].dims != _IMAGE_DIMS or error.shape != shape:
+                raise MeasurementError(f"{name} must be over {_IMAGE_DIMS} like the radiance")
+            if not np.all(np.isfinite(error)) or np.any(error < 0.0):
+                raise MeasurementError(f"{name} must be finite and >= 0")
+    if "wavelength" in ds.attrs and not float(ds.attrs["wavelength"]) > 0.0:
+        raise MeasurementError(f"wavelength must be positive, got {ds.attrs['wavelength']}")
+
+
+def save_measurements(ds: xr.Dataset, path: str | os.PathLike, overwrite: bool = False) -> None:
+    """Validate a measurement set and write it to netCDF-4 (moved into place when complete).
+
+    Raises:
+        FileExistsError: ``path`` exists and ``overwrite`` is False.
+        MeasurementError: ``ds`` is not a valid measurement set.
+    """
+    validate_measurements(ds)
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists; pass overwrite=True (--overwrite) to replace it")
+    partial = path.with_name(f".{path.name}.partial")
+    try:
+        ds.to_netcdf(partial, engine="netcdf4", format="NETCDF4")
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
+
+
+def load_measurements(path: str | os.PathLike) -> xr.Dataset:
+    """Read a measurement file fully into memory (the file is closed) and validate it.
+
+    Raises:
+        FileNotFoundError: no such file.
+        MeasurementError: the file does not hold a valid measurement set.
+    """
+    with xr.open_dataset(path, engine="netcdf4") as stored:
+        ds = stored.load()
+    validate_measurements(ds)
+    return ds
+
+
+def _cli_synth(args: argparse.Namespace) -> int:
+    """``cloudct synth``: synthetic measurements of a medium, to netCDF."""
+    if args.read_noise is not None and args.noise_electrons is None:
+        raise ValueError("--read-noise needs --noise-electrons (the signal level)")
+    medium = single_cloud_medium() if args.medium is None else load_medium(args.medium)
+    scene = None if args.scene is None else Scene.from_dataset(xr.load_dataset(args.scene))
+    noise = None
+    if args.noise_electrons is not None:
+        noise = NoiseModel(args.noise_electrons, read_noise=args.read_noise or 0.0)
+    output = Path(args.output)
+    if output.exists() and not args.overwrite:
+        raise FileExistsError(f"{output} exists (use --overwrite)")
+    ds = synthesize_measurements(
+        medium, scene, photons=args.photons, seed=args.seed, noise=noise,
+        wavelength=args.wavelength, progress=None,
+    )
+    save_measurements(ds, output, overwrite=args.overwrite)
+    noise_text = "no camera noise" if noise is None else (
+        f"{noise.electrons:g} e- at radiance 1/pi, read noise {noise.read_noise:g} e-"
+    )
+    print(
+        f"wrote {output}: {ds.sizes['view']} views of {ds.sizes['row']}x{ds.sizes['col']}, "
+        f"{ds.attrs['photons']} photons, {noise_text}"
+    )
+    return 0
+
+
+def register_cli(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``cloudct synth``."""
+    p = subparsers.add_parser(
+        "synth",
+        help="synthesize noisy multi-view measurements of a medium",
+        description="Render a medium (default: the bundled single cloud) for a scene "
+        "(default: the seed paper's nine cameras) with many photons, add camera noise "
+        "(Poisson photo-electrons at the stated signal level plus Gaussian read noise), and "
+        "write a measurement netCDF.",
+    )
+    p.add_argument("medium", nargs="?", help="medium netCDF (default: bundled single cloud)")
+    p.add_argument("-o", "--output", default="measurements.nc", help="output netCDF")
+    p.add_argument("--scene", help="scene netCDF from `cloudct scene` (default: nine cameras)")
+    p.add_argument("--photons", type=int, default=DEFAULT_PHOTONS, help="forward photons")
+    p.add_argument("--seed", type=int, default=0, help="seed of the render and the noise")
+    p.add_argument(
+        "--noise-electrons", type=float, metavar="E",
+        help="mean photo-electrons at radiance 1/pi (white plate facing the sun); "
+        "default: no camera noise",
+    )
+    p.add_argument("--read-noise", type=float, metavar="R", help="read noise [electrons rms]")
+    p.add_argument("--wavelength", type=float, default=DEFAULT_WAVELENGTH,
+                   help="wavelength [micron] (default %(default)s)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.set_defaults(func=_cli_synth)
