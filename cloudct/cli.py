@@ -14,6 +14,9 @@ import sys
 COMMAND_MODULES = (
     "data_synth.les",
     "cloudct.mc.render",
+    "data_synth.measurements",
+    "cloudct.retrieval.carving",
+    "cloudct.retrieval.cli",
 )
 
 

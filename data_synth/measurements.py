@@ -43,7 +43,7 @@ import xarray as xr
 from cloudct.mc.cameras import cameras_from_dataset
 from cloudct.mc.render import RADIANCE_UNITS, render, single_cloud_medium
 from cloudct.mc.scene import Scene, single_cloud_scene
-from cloudct.medium import cell_edges, is_microphysical, load_medium, validate_medium
+from cloudct.medium import cell_edges, is_optical, load_medium, validate_medium
 from cloudct.physics.mie import DEFAULT_WAVELENGTH
 from cloudct.physics.optics import to_optical
 
@@ -123,8 +123,8 @@ def synthesize_measurements(
     """Synthetic measurements of ``medium``: a forward render plus optional camera noise.
 
     Args:
-        medium: an optical or microphysical medium (microphysics is converted with the Mie
-            tables at ``wavelength``).
+        medium: an optical medium (used as it is), or a microphysical one (converted with
+            the Mie tables at ``wavelength``).
         scene: cameras, sun and boundaries; default the seed paper's nine-camera
             single-cloud geometry for the medium's box (:func:`single_cloud_scene`).
         photons: forward photons of the render.
@@ -145,7 +145,7 @@ def synthesize_measurements(
     validate_medium(medium)
     if not (math.isfinite(wavelength) and wavelength > 0.0):
         raise ValueError(f"wavelength must be positive, got {wavelength}")
-    if is_microphysical(medium):
+    if not is_optical(medium):
         medium = to_optical(medium, wavelength=wavelength)
     elif "wavelength" in medium.attrs and not np.isclose(
         float(medium.attrs["wavelength"]), wavelength

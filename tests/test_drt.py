@@ -131,10 +131,16 @@ def drt():
 def compare(voxels, drt, finite_differences, label):
     mean, se = drt
     fd = np.array([finite_differences[v] for v in voxels])
-    return assert_consistent(
-        np.array([mean[v] for v in voxels]), np.array([se[v] for v in voxels]), fd[:, 0],
-        BATCHES, reference_error=fd[:, 1], label=label,
+    est = np.array([mean[v] for v in voxels])
+    est_se = np.array([se[v] for v in voxels])
+    stats = assert_consistent(
+        est, est_se, fd[:, 0], BATCHES, reference_error=fd[:, 1], label=label
     )
+    for v, e, s, (f, fs) in zip(voxels, est, est_se, fd, strict=True):
+        print(f"{label} {v}: DRT {e:+.5f} +- {s:.5f}, FD {f:+.5f} +- {fs:.5f}, "
+              f"z = {(e - f) / math.hypot(s, fs):+.2f}")
+    print(label, stats)
+    return stats
 
 
 def test_drt_matches_finite_differences_in_cloud(drt, finite_differences):
@@ -151,7 +157,8 @@ def test_drt_matches_finite_differences_where_nothing_scatters(drt, finite_diffe
     away from anything an attenuation-only (score-function) estimate could give (<= 0
     with positive weights), so the comparison has the power to see it missing."""
     fd = np.array([finite_differences[v] for v in EMPTY_VOXELS])
-    assert np.all(fd[:, 0] / fd[:, 1] > 8.0), fd
+    assert np.all(fd[:, 0] / fd[:, 1] > 3.0), fd
+    assert fd[:, 0].sum() / np.sqrt(np.sum(fd[:, 1] ** 2)) > 20.0, fd
     compare(EMPTY_VOXELS, drt, finite_differences, "empty voxels")
 
 
@@ -203,12 +210,12 @@ def transmittance_law(grid, p, u, periodic):
     d = t1 - t0
     tau_in = np.concatenate([[0.0], np.cumsum(beta * d)[:-1]])
     x = beta * d
-    area = np.exp(-tau_in) * np.where(x > 0, -np.expm1(-x) / np.where(x > 0, x, 1.0), 1.0) * d
+    b = np.where(beta > 0, beta, 1.0)
+    area = np.exp(-tau_in) * np.where(beta > 0, -np.expm1(-x) / b, d)  # int_piece T dt
     c = area.sum()
     prob = np.zeros(grid.extinction.shape[1:])
     np.add.at(prob, (ix, iy, iz), area / c)
     # int t T dt over a piece: T_in int_0^d (t0 + s) exp(-beta s) ds
-    b = np.where(beta > 0, beta, 1.0)
     moment = np.where(beta > 0, (1 - np.exp(-x) * (1 + x)) / b**2, d**2 / 2)
     mean_t = np.sum(area * t0 + np.exp(-tau_in) * moment) / c
     return c, prob, mean_t
@@ -247,9 +254,9 @@ def test_transmittance_sampling_follows_transmittance(p, u, periodic):
     grid, _ = kernel_arrays(drt_medium())
     p = np.array(p)
     u = np.array(u) / np.linalg.norm(u)
+    edges = (grid.x_edges, grid.y_edges, grid.z_edges)
     voxel = np.array(
-        [min(np.searchsorted(e, x, side="right") - 1, e.size - 2) for e, x in
-         zip((grid.x_edges, grid.y_edges, grid.z_edges), p)]
+        [min(np.searchsorted(e, p[a], side="right") - 1, e.size - 2) for a, e in enumerate(edges)]
     )
     c_ref, prob_ref, mean_t_ref = transmittance_law(grid, p, u, periodic)
     n = 64_000
@@ -260,9 +267,9 @@ def test_transmittance_sampling_follows_transmittance(p, u, periodic):
     counts = np.zeros((BATCHES, *grid.extinction.shape[1:]))
     np.add.at(counts, (batch, v[:, 0], v[:, 1], v[:, 2]), 1.0)
     freq = counts / (n / BATCHES)
+    assert not counts[:, prob_ref == 0.0].any(), "a point off the ray's voxels"
     seen = prob_ref > 1e-3
     assert prob_ref[seen].sum() > 0.99 and seen.sum() >= 5
-    assert np.all(freq.sum(axis=0)[~seen] <= 0.01 * n / BATCHES)
     assert_consistent(
         freq.mean(axis=0)[seen], freq.std(axis=0, ddof=1)[seen] / math.sqrt(BATCHES),
         prob_ref[seen], BATCHES, label="voxel frequencies",

@@ -38,6 +38,15 @@ def cuda_unavailable_reason() -> str | None:
         return f"CUDA is not usable ({exc})"
     if not available:
         return "no CUDA GPU is available"
+    from numba import config
+
+    if not config.ENABLE_CUDASIM:
+        try:
+            from numba.cuda.cudadrv.nvvm import NVVM
+
+            NVVM()
+        except Exception as exc:  # the GPU compiler of the CUDA toolkit
+            return f"NVVM is not found ({exc}); pip install 'numba-cuda[cu12]'"
     return None
 
 

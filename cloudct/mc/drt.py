@@ -25,26 +25,30 @@ box boundary or the ground at t_s. With T(t) = exp(-int_0^t beta) the transmitta
     J(x, u) = sum_j alpha_j beta_j [ f_j(s.u) T_sun(x) + int f_j(u.w) L(x, w) dw ],
 
 the in-scattered radiance per unit length: the mixture of seed-paper Eqs. (2)-(5) written as
-sum_j beta_s^(j) f_j = beta_s f_mix, the collimated sun (irradiance 1, towards-sun unit
-vector s, T_sun(x) the transmittance from x to the top of the box along s) and the diffuse
-radiance L. L_g = A cos(theta0)/pi T_sun + A int cos/pi L is the Lambertian ground. The pixel
-value is the pixel-area average of L over the pixel's rays. (DRT's sigma_t alpha L_s is J.)
+sum_j beta_s^(j) f_j = beta_s f_mix, the collimated sun (irradiance 1 across its rays,
+towards-sun unit vector s, T_sun(x) the transmittance from x along s out of the medium) and
+the diffuse radiance L (the sun's own disc is never seen, as in the images).
+L_g = A cos(theta0)/pi T_sun + A int cos/pi L is the Lambertian ground. A pixel's value is
+the pixel-area average of L over its rays. (DRT's sigma_t alpha L_s is J; its L_e is 0.)
 
 Derivative w.r.t. beta_v (DRT Eqs. 5-7)
 ---------------------------------------
-With 1_v(x) the indicator of voxel v and len_v(a, b) the length of the chord a-b inside v:
+With 1_v(x) the indicator of voxel v and len_v(a, b) the length of the chord a-b inside v,
+and the albedos and phase functions fixed, d(sum_j alpha_j beta_j f_j)/dbeta_v =
+alpha_c f_c 1_v (dbeta/dbeta_v = 1_v), so dL/dbeta_v has three kinds of terms:
 
-(1a) in-scattering, Eq. (5):  int_0^t_s T(t) dJ/dbeta_v dt, where, the albedos and phase
-     functions being fixed, d(sum_j alpha_j beta_j f_j)/dbeta_v = alpha_c f_c 1_v:
+(1a) in-scattering, Eq. (5): int_0^t_s T(t) 1_v(x_t) K(x_t, u) dt with
 
-         dJ/dbeta_v = 1_v(x) alpha_c [ f_c(s.u) T_sun(x) + int f_c(u.w) L(x, w) dw ]
-                      - len_v(x, sun) * (sun part of J)          [NEE attenuation];
+         K(x, u) = alpha_c [ f_c(s.u) T_sun(x) + int f_c(u.w) L(x, w) dw ]
 
-     the first line is the term a score function cannot sample where beta = 0.
-(a)  attenuation, Eq. (6):  -len_v(0, t) T(t) J(t) and -len_v(0, t_s) T(t_s) L_g, and the
-     -len_v(x, sun) of every NEE connection (last line of (1a));
-(1b) recursion, Eq. (7): T alpha dL/dbeta and the ground's dL_g/dbeta (no own dependence on
-     beta: DRT Eq. (9) with L_e = 0), estimated by the terms of the rest of the path.
+     over the WHOLE ray to t_s, also where beta = 0: the term a score function (a
+     free-flight estimator) cannot sample there;
+(a)  attenuation, Eq. (6): -len_v(0, t) T(t) J(t) along the ray, -len_v(0, t_s) T(t_s) L_g
+     for the ground (second row of Eq. 6), and inside J the NEE's own attenuation
+     -len_v(x, sun) alpha_j beta_j f_j(s.u) T_sun(x);
+(1b) recursion, Eq. (7): T sum_j alpha_j beta_j int f_j dL/dbeta_v and the ground's
+     A int cos/pi dL/dbeta_v (the ground itself does not depend on beta: Eq. (9) with
+     L_e = 0), i.e. the same three kinds of terms further along the path.
 
 Estimators
 ----------

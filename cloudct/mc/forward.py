@@ -134,7 +134,7 @@ def local_estimate(
                     continue
                 if mode != RENDER and residual[view, row, col] == 0.0:
                     continue
-                if trail is None:
+                if trail is None or mode != GRADIENT:
                     tau = optical_depth_to_exit(
                         grid, px, py, pz, cx, cy, cz, ix, iy, iz, periodic
                     )
@@ -152,7 +152,7 @@ def local_estimate(
                 weighted_sum += value
                 if mode == GRADIENT and value != 0.0:
                     if trail is not None and trail.count[0] <= trail.voxel.size:
-                        deposit_trail(grid, trail, gradient, -value)
+                        deposit_trail(trail, gradient, -value)
                     else:
                         march(
                             grid, px, py, pz, cx, cy, cz, ix, iy, iz, INF, periodic, gradient,
@@ -167,16 +167,12 @@ def local_estimate(
 
 
 @njit(cache=True)
-def deposit_trail(grid, trail, gradient, weight):
-    """gradient[voxel] += weight x length for the crossings of a :class:`Trail`, in order."""
-    ny = grid.y_edges.size - 1
-    nz = grid.z_edges.size - 1
+def deposit_trail(trail, gradient, weight):
+    """gradient[voxel] += weight x length for the crossings of a :class:`Trail`, in order
+    (``gradient`` C-contiguous over (x, y, z), addressed by flat voxel index)."""
+    flat = gradient.reshape((1, 1, gradient.size))
     for c in range(trail.count[0]):
-        v = trail.voxel[c]
-        iz = v % nz
-        iy = (v // nz) % ny
-        ix = v // (nz * ny)
-        add_to(gradient, ix, iy, iz, weight * trail.length[c])
+        add_to(flat, 0, 0, trail.voxel[c], weight * trail.length[c])
 
 
 @njit(cache=True)

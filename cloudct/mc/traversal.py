@@ -53,18 +53,6 @@ def new_trail(capacity: int, voxel_dtype=np.int64) -> Trail:
 
 
 @njit(cache=True)
-def _trail_append(trail, grid, ix, iy, iz, length):
-    n = trail.count[0]
-    if n < trail.voxel.size:
-        ny = grid.y_edges.size - 1
-        nz = grid.z_edges.size - 1
-        trail.voxel[n] = (ix * ny + iy) * nz + iz
-        trail.length[n] = length
-    trail.count[0] = n + 1
-    trail.distance[0] += length
-
-
-@njit(cache=True)
 def locate(edges, p, d):
     """Index of the cell of ``edges`` holding coordinate ``p``, ties broken by direction ``d``.
 
@@ -134,25 +122,31 @@ def march(
         t = min(tx, min(ty, tz))
         beta = total_extinction(grid, ix, iy, iz)
         dtau = beta * t
+        piece = t  # the length walked in this voxel
+        stop = False
         if walked + t >= max_distance:
             s = max_distance - walked
             if tau + beta * s < tau_target:
-                if lengths is not None:
-                    add_to(lengths, ix, iy, iz, length_weight * s)
-                if trail is not None:
-                    _trail_append(trail, grid, ix, iy, iz, s)
-                return STOPPED, px + s * ux, py + s * uy, pz + s * uz, ix, iy, iz, tau + beta * s
-        if tau + dtau >= tau_target:
-            s = (tau_target - tau) / beta
-            if lengths is not None:
-                add_to(lengths, ix, iy, iz, length_weight * s)
-            if trail is not None:
-                _trail_append(trail, grid, ix, iy, iz, s)
-            return STOPPED, px + s * ux, py + s * uy, pz + s * uz, ix, iy, iz, tau_target
+                piece = s
+                stop = True
+                tau_end = tau + beta * s
+        if not stop and tau + dtau >= tau_target:
+            piece = (tau_target - tau) / beta
+            stop = True
+            tau_end = tau_target
         if lengths is not None:
-            add_to(lengths, ix, iy, iz, length_weight * t)
+            add_to(lengths, ix, iy, iz, length_weight * piece)
         if trail is not None:
-            _trail_append(trail, grid, ix, iy, iz, t)
+            n = trail.count[0]
+            if n < trail.voxel.size:
+                trail.voxel[n] = (ix * ny + iy) * nz + iz
+                trail.length[n] = piece
+            trail.count[0] = n + 1
+            trail.distance[0] += piece
+        if stop:
+            return (
+                STOPPED, px + piece * ux, py + piece * uy, pz + piece * uz, ix, iy, iz, tau_end
+            )
         tau += dtau
         walked += t
         px += t * ux

@@ -103,18 +103,21 @@ def segment_optical_depth(grid, beta, S, k, use_crossings, periodic, gradient, w
     products in the same order. With an array ``gradient``, ``weight`` x length is added to
     every crossed voxel (the segment's part of the score function, for weight = -W_k).
     """
-    ny = grid.y_edges.size - 1
-    nz = grid.z_edges.size - 1
     if use_crossings:
         tau = 0.0
-        for c in range(S.crossing_start[k], S.crossing_start[k + 1]):
-            v = S.crossing_voxel[c]
-            length = S.crossing_length[c]
-            tau += beta[v] * length
-            if gradient is not None:
-                ix, iy, iz = decode_voxel(v, ny, nz)
-                add_to(gradient, ix, iy, iz, weight * length)
+        if gradient is None:
+            for c in range(S.crossing_start[k], S.crossing_start[k + 1]):
+                tau += beta[S.crossing_voxel[c]] * S.crossing_length[c]
+        else:
+            flat = gradient.reshape((1, 1, gradient.size))
+            for c in range(S.crossing_start[k], S.crossing_start[k + 1]):
+                v = S.crossing_voxel[c]
+                length = S.crossing_length[c]
+                tau += beta[v] * length
+                add_to(flat, 0, 0, v, weight * length)
         return tau
+    ny = grid.y_edges.size - 1
+    nz = grid.z_edges.size - 1
     j = k - 1
     ix, iy, iz = decode_voxel(S.voxel[j], ny, nz)
     limit = S.length[k] if S.kind[k] == SCATTER else INF
@@ -220,18 +223,11 @@ def replay_path(
         s_event = 0.0
         w = weight * math.exp(log_r)
         if w != 0.0:
-            if mode == GRADIENT:
-                s_event = local_estimate(
-                    grid, bank, cams, copies, periodic, S.position[0, k], S.position[1, k],
-                    S.position[2, k], ix, iy, iz, S.direction[0, k], S.direction[1, k],
-                    S.direction[2, k], w, event_albedo, mode, image, residual, gradient, trail,
-                )
-            else:
-                s_event = local_estimate(
-                    grid, bank, cams, copies, periodic, S.position[0, k], S.position[1, k],
-                    S.position[2, k], ix, iy, iz, S.direction[0, k], S.direction[1, k],
-                    S.direction[2, k], w, event_albedo, mode, image, residual, gradient,
-                )
+            s_event = local_estimate(
+                grid, bank, cams, copies, periodic, S.position[0, k], S.position[1, k],
+                S.position[2, k], ix, iy, iz, S.direction[0, k], S.direction[1, k],
+                S.direction[2, k], w, event_albedo, mode, image, residual, gradient, trail,
+            )
         if kind == GROUND:
             weight *= ground_albedo
         scratch[k - a] = s_event
@@ -267,36 +263,65 @@ def replay_path(
 # ----------------------------------------------------------------------------------------
 
 
-@njit(parallel=True, cache=True)
-def replay_batches(
-    grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power, beta, S,
-    use_crossings, per_batch, first, last, mode, images, residual, gradients, log_ratio, events,
+@njit(cache=True)
+def _replay_batch(
+    b, grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power, beta, S,
+    use_crossings, per_batch, first, last, mode, image, residual, gradient, log_ratio,
     trail_capacity, max_records,
 ):
-    """Re-evaluate the stored paths at photon-order positions ``b * per_batch + k`` for k in
-    ``first .. last - 1`` of every batch b: RENDER into ``images[b]``, GRADIENT into
-    ``gradients[b]``; ``log_ratio[j]`` receives the whole-path log correction factor of the
-    path at photon-order position j. Each batch visits its paths in photon order, whatever
-    the storage order (sorted or not), so the sums are bitwise independent of the sorting.
-    """
-    for b in prange(images.shape[0]):
-        scratch = np.zeros(max_records)
-        trail = Trail(
-            np.zeros(trail_capacity, np.int64), np.zeros(trail_capacity), np.zeros(1, np.int64),
-            np.zeros(1),
+    scratch = np.zeros(max_records)
+    trail = Trail(
+        np.zeros(trail_capacity, np.int64), np.zeros(trail_capacity), np.zeros(1, np.int64),
+        np.zeros(1),
+    )
+    n = 0
+    for k in range(first, last):
+        j = b * per_batch + k
+        depth, _, log_r = replay_path(
+            grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power,
+            beta, S, S.slot[j], use_crossings, mode, image, residual, gradient, trail, scratch,
         )
-        n = 0
-        for k in range(first, last):
-            j = b * per_batch + k
-            p = S.slot[j]
-            depth, _, log_r = replay_path(
-                grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power,
-                beta, S, p, use_crossings, mode, images[b], residual, gradients[b], trail,
-                scratch,
-            )
-            log_ratio[j] = log_r
-            n += depth
-        events[b] += n
+        log_ratio[j] = log_r
+        n += depth
+    return n
+
+
+@njit(parallel=True, cache=True)
+def replay_render_batches(
+    grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power, beta, S,
+    use_crossings, per_batch, first, last, images, log_ratio, events, max_records,
+):
+    """Re-evaluate the stored paths at photon-order positions ``b * per_batch + k`` for k in
+    ``first .. last - 1`` of every batch b, adding their local estimates to ``images[b]``;
+    ``log_ratio[j]`` receives the whole-path log correction factor of the path at
+    photon-order position j. Each batch visits its paths in photon order, whatever the
+    storage order (sorted or not), so the sums are bitwise independent of the sorting.
+    (One kernel per mode, so that the mode is a compile-time constant.)
+    """
+    no_residual = np.zeros((1, 1, 1))
+    for b in prange(images.shape[0]):
+        events[b] += _replay_batch(
+            b, grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power,
+            beta, S, use_crossings, per_batch, first, last, RENDER, images[b], no_residual,
+            no_residual, log_ratio, 0, max_records,
+        )
+
+
+@njit(parallel=True, cache=True)
+def replay_gradient_batches(
+    grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power, beta, S,
+    use_crossings, per_batch, first, last, residual, gradients, log_ratio, events,
+    trail_capacity, max_records,
+):
+    """As :func:`replay_render_batches`, depositing the residual-weighted score-function
+    gradient of batch b into ``gradients[b]``."""
+    no_image = np.zeros((1, 1, 1))
+    for b in prange(gradients.shape[0]):
+        events[b] += _replay_batch(
+            b, grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power,
+            beta, S, use_crossings, per_batch, first, last, GRADIENT, no_image, residual,
+            gradients[b], log_ratio, trail_capacity, max_records,
+        )
 
 
 @njit(parallel=True, cache=True)

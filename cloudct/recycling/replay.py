@@ -17,6 +17,7 @@ wherever the reference's is (paths cannot visit where M_ref has no extinction).
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import xarray as xr
@@ -27,7 +28,8 @@ from cloudct.mc.render import KernelInputs, images_dataset, kernel_inputs, run_i
 from cloudct.recycling.kernels import (
     flat_total_extinction,
     log_ratio_batches,
-    replay_batches,
+    replay_gradient_batches,
+    replay_render_batches,
 )
 from cloudct.recycling.store import PathStore, check_not_empty, check_same_grid
 
@@ -67,27 +69,35 @@ def _replay(
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     k, beta = _inputs(store, medium)
     b = store.batches
-    if mode == RENDER:
-        images = np.zeros((b, len(store.scene.cameras), k.cams.nrows, k.cams.ncols))
-        gradients = np.zeros((b, 1, 1, 1))
-        residual = np.zeros((1, 1, 1))
-    else:
-        images = np.zeros((b, 1, 1, 1))
-        gradients = np.zeros((b, *k.grid.extinction.shape[1:]))
     log_r = np.empty(store.paths)
     events = np.zeros(b, dtype=np.int64)
-    # scratch room for the crossings of a camera connection (longer ones are walked twice)
-    trail_capacity = 4 * sum(e.size - 1 for e in k.edges) + 16
+    common = (
+        k.grid, k.bank, k.cams, k.copies, k.periodic, k.ground, store.rr_depth,
+        store.rr_survival, k.sun.power, beta, store.arrays, store.storage == "crossings",
+        store.per_batch,
+    )
+    if mode == RENDER:
+        out = np.zeros((b, len(store.scene.cameras), k.cams.nrows, k.cams.ncols))
 
-    def run(first: int, last: int) -> None:
-        replay_batches(
-            k.grid, k.bank, k.cams, k.copies, k.periodic, k.ground, store.rr_depth,
-            store.rr_survival, k.sun.power, beta, store.arrays, store.storage == "crossings",
-            store.per_batch, first, last, mode, images, residual, gradients, log_r, events,
-            trail_capacity, store.max_records,
-        )
+        def run(first: int, last: int) -> None:
+            replay_render_batches(*common, first, last, out, log_r, events, store.max_records)
+    else:
+        out = np.zeros((b, *k.grid.extinction.shape[1:]))
+        # scratch room for the crossings of a camera connection (longer ones: walked twice)
+        trail_capacity = 4 * sum(e.size - 1 for e in k.edges) + 16
 
-    wall = run_in_rounds(run, store.per_batch, b, progress, unit="path", desc=desc)
+        def run(first: int, last: int) -> None:
+            replay_gradient_batches(
+                *common, first, last, residual, out, log_r, events, trail_capacity,
+                store.max_records,
+            )
+
+    if progress:
+        wall = run_in_rounds(run, store.per_batch, b, progress, unit="path", desc=desc)
+    else:  # one call: each call of a parallel kernel has a fixed cost
+        start = time.perf_counter()
+        run(0, store.per_batch)
+        wall = time.perf_counter() - start
     ess = effective_sample_size(log_r)
     info = {
         "photons": store.paths,
@@ -99,7 +109,6 @@ def _replay(
         "sorted": store.sorted,
         "seed": store.seed,
     }
-    out = images if mode == RENDER else gradients
     return out / store.per_batch, log_r, info
 
 

@@ -219,7 +219,6 @@ def record_paths(
     )
     path_start = np.zeros(npaths + 1, dtype=np.int64)
     np.cumsum(counts, out=path_start[1:])
-    del counts
     nrec = int(path_start[-1])
     lean = lean_bytes(nrec, npaths, vsize)
     if memory_budget is not None and lean > memory_budget:

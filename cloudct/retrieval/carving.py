@@ -3,30 +3,39 @@
 Seed paper Sec. 6.1.1: the retrieval starts from the space-carved hull of the cloud
 [Kutulakos and Seitz 2000] filled with the cloud's mean extinction. Here:
 
-1. **Cloudy pixels.** In each view v a pixel is cloudy when its radiance exceeds the view's
-   clear-sky background b_v by more than the threshold t_v (:func:`cloud_masks`).
-2. **Votes.** A voxel is projected onto each view by the cameras' pinhole model
-   (:func:`cloudct.mc.cameras.project`) at the centres of its ``subsamples``^3 sub-cells.
-   View v votes for the voxel when one of those points falls on a cloudy pixel, or when one
-   falls outside the image or on a masked (NaN) pixel: a view cannot carve away what it
-   does not see.
-3. **Hull.** The voxels with at least k votes (default: every view) form the hull.
+1. **Clear-sky background** (:func:`clear_sky_background`). What a pixel would see without
+   the cloud: sunlight singly scattered by the template's air along the pixel's rays
+   through the medium, plus the sunlit Lambertian ground where the scene has one.
+2. **Cloudy pixels** (:func:`cloud_masks`). A pixel is cloudy when its radiance exceeds its
+   clear-sky background by more than the larger of a fraction of the view's cloud signal
+   and a multiple of the pixel's noise standard deviation (or a given threshold).
+3. **Votes.** A voxel is projected onto each view with the cameras' pinhole model
+   (:func:`project_points`, the vectorised twin of :func:`cloudct.mc.cameras.project`) at
+   the centres of its ``subsamples``^3 sub-cells. View v votes for the voxel when one of
+   those points falls on a cloudy pixel, or when one falls outside the image or on a masked
+   (NaN) pixel: a view cannot carve away what it does not see.
+4. **Hull.** The voxels with at least k votes form the hull. The default k is every view
+   but one (n - 1; n when there are fewer than three views): one view may miss a part of
+   the cloud, typically a shadowed cloud base seen from the side, which is no brighter
+   than the clear sky behind it, or a thin edge lost in the noise.
 
-:func:`initial_medium` fills the hull with one cloud extinction (by default the estimate
-stored by :func:`carve`, see :func:`extinction_estimate`) and clears the rest.
+:func:`fit_extinction` (called by :func:`carve`) finds the constant extinction that makes the
+hull's rendered images as bright as the measurements, and :func:`initial_medium` fills the
+hull with it.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import xarray as xr
-from numba import njit, prange
 
-from cloudct.mc.cameras import CameraArrays, camera_arrays, pixel_ray, project
+from cloudct.mc.cameras import CameraArrays, camera_arrays
+from cloudct.mc.render import render
 from cloudct.mc.scene import Scene, check_scene
 from cloudct.medium import (
     DEFAULT_CLOUD_ALBEDO,
@@ -39,39 +48,198 @@ from cloudct.medium import (
     validate_medium,
 )
 
-#: Default threshold rule (see :func:`cloud_masks`).
-BACKGROUND_PERCENTILE = 20.0
-PEAK_PERCENTILE = 99.0
-RANGE_FRACTION = 0.05
+#: Default cloudy-pixel rule (see :func:`cloud_masks`).
+SIGNAL_FRACTION = 0.02
+SIGNAL_PERCENTILE = 99.0
 NOISE_MULTIPLE = 3.0
 #: Default number of sub-cells per axis at whose centres a voxel is projected.
 SUBSAMPLES = 3
-#: Relative tolerance (of the box size) for the measurement box matching the template's.
+#: Sub-pixel rays per axis of the clear-sky background.
+BACKGROUND_SUBPIXELS = 4
+#: Absolute tolerance on the measured box, as a fraction of the box's largest extent.
 BOX_RTOL = 1e-6
+#: Photons of each trial render of :func:`fit_extinction`.
+FIT_PHOTONS = 100_000
+
+
+# ---------------------------------------------------------------------------------------
+# Geometry: projection and rays
+# ---------------------------------------------------------------------------------------
+
+
+def project_points(
+    cams: CameraArrays, view: int, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (row, col) of camera ``view`` seeing ``points`` (..., 3) [km]; -1 where a
+    point is behind the camera or outside the image. The vectorised twin of
+    :func:`cloudct.mc.cameras.project` (the same pinhole model and pixel edges)."""
+    d = points - cams.position[view]
+    depth = d @ cams.forward[view]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = (d @ cams.right[view]) / depth
+        v = (d @ cams.up[view]) / depth
+    hw, hh = cams.half_width[view], cams.half_height[view]
+    inside = (depth > 0.0) & (-hw <= u) & (u < hw) & (-hh < v) & (v <= hh)
+    col = np.minimum(np.floor((u + hw) / (2.0 * hw) * cams.ncols), cams.ncols - 1)
+    row = np.minimum(np.floor((hh - v) / (2.0 * hh) * cams.nrows), cams.nrows - 1)
+    return np.where(inside, row, -1).astype(np.int64), np.where(inside, col, -1).astype(np.int64)
+
+
+def pixel_rays(cams: CameraArrays, view: int, subpixels: int = 1) -> np.ndarray:
+    """Unit directions from the pinhole of ``view`` through the centres of the
+    ``subpixels`` x ``subpixels`` sub-pixels of every pixel, (nrows, ncols, subpixels^2, 3)
+    (the same image plane as :func:`cloudct.mc.cameras.pixel_ray`)."""
+    hw, hh = cams.half_width[view], cams.half_height[view]
+    offsets = (np.arange(subpixels) + 0.5) / subpixels
+    u = -hw + (np.arange(cams.ncols)[:, None] + offsets).ravel() * (2.0 * hw / cams.ncols)
+    v = hh - (np.arange(cams.nrows)[:, None] + offsets).ravel() * (2.0 * hh / cams.nrows)
+    rays = (
+        cams.forward[view]
+        + u[None, :, None] * cams.right[view]
+        + v[:, None, None] * cams.up[view]
+    )
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    # (nrows * s, ncols * s, 3) -> (nrows, ncols, s * s, 3)
+    s = subpixels
+    rays = rays.reshape(cams.nrows, s, cams.ncols, s, 3).transpose(0, 2, 1, 3, 4)
+    return rays.reshape(cams.nrows, cams.ncols, s * s, 3)
+
+
+def ray_box(
+    origin: np.ndarray, rays: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Distances (t_in, t_out) along ``rays`` (..., 3) from ``origin`` through the box
+    [lo, hi] (slab method; infinite bounds allowed). t_in >= t_out where a ray misses."""
+    # a ray parallel to a pair of faces gets +-inf there (inside the slab for every t, or
+    # never), or NaN (0/0) when it runs in a face plane: counted as inside
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = (lo - origin) / rays
+        t1 = (hi - origin) / rays
+    near = np.where(np.isnan(t0), -np.inf, np.minimum(t0, t1))
+    far = np.where(np.isnan(t1), np.inf, np.maximum(t0, t1))
+    return np.maximum(near.max(axis=-1), 0.0), far.min(axis=-1)
+
+
+def _march(
+    t_in: np.ndarray, t_out: np.ndarray, step: float
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Steps along rays from t_in to t_out: yields (live, midpoint t, segment length), the
+    last segment of each ray cut at t_out."""
+    start = t_in.copy()
+    while np.any(live := start < t_out):
+        end = np.minimum(start[live] + step, t_out[live])
+        yield live, 0.5 * (start[live] + end), end - start[live]
+        start[live] = end
+
+
+def _cell_index(edges: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Index of the cell of ``edges`` holding each value (clamped to the grid)."""
+    return np.clip(np.searchsorted(edges, values, side="right") - 1, 0, len(edges) - 2)
+
+
+def _box(edges: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray]:
+    return np.array([e[0] for e in edges]), np.array([e[-1] for e in edges])
+
+
+# ---------------------------------------------------------------------------------------
+# Clear-sky background and cloudy pixels
+# ---------------------------------------------------------------------------------------
+
+
+def clear_sky_background(
+    scene: Scene, template: xr.Dataset, subpixels: int = BACKGROUND_SUBPIXELS
+) -> np.ndarray:
+    """Radiance each pixel would see without the cloud, float64[view, row, col].
+
+    Single scattering of sunlight by the template's air, averaged over
+    ``subpixels`` x ``subpixels`` rays per pixel:
+
+        L_air = w_air p_R(Theta) integral beta_air(z) T_sun(z) T_view(t) dt
+
+    along the ray inside the medium (the box; with periodic boundaries the whole slab),
+    with p_R the Rayleigh phase function at the scattering angle Theta between the sun's
+    rays and the direction to the camera, beta_air the air extinction averaged over x and y,
+    T_view the transmittance back to the camera and T_sun = exp(-tau_above(z) / mu0) that
+    from the top of the medium. A Lambertian ground of albedo A seen by the ray adds
+    A mu0 / pi T_sun(ground) T_view(ground). Air multiple scattering and sunlight entering
+    through the side faces (open boundaries, oblique sun) are neglected: errors of the order
+    of the air's optical depth (a few per cent) in a background that is itself small.
+    """
+    validate_medium(template)
+    edges = cell_edges(template)
+    check_scene(scene, edges)
+    z_edges = edges[2]
+    air = template["air_extinction"]
+    beta = np.broadcast_to(
+        air.mean(dim=[d for d in air.dims if d != "z"]).values, (len(z_edges) - 1,)
+    )
+    tau_below = np.concatenate(([0.0], np.cumsum(beta * np.diff(z_edges))))
+    albedo = float(template["air_albedo"])
+    sun = scene.sun.travel_direction()
+    mu0 = -sun[2]
+
+    def sun_transmittance(z: np.ndarray) -> np.ndarray:
+        tau_above = tau_below[-1] - np.interp(z, z_edges, tau_below)
+        return np.exp(-tau_above / mu0)
+
+    lo, hi = _box(edges)
+    if scene.periodic:
+        lo[:2], hi[:2] = -np.inf, np.inf
+    step = 0.5 * float(np.diff(z_edges).min())
+    cams = camera_arrays(scene.cameras)
+    out = np.zeros((len(scene.cameras), cams.nrows, cams.ncols))
+    for v in range(out.shape[0]):
+        origin = cams.position[v]
+        rays = pixel_rays(cams, v, subpixels)
+        t_in, t_out = ray_box(origin, rays, lo, hi)
+        mu = -(rays @ sun)  # cos(scattering angle): sun's rays vs. direction to the camera
+        phase = 3.0 / (16.0 * np.pi) * (1.0 + mu * mu)
+        radiance = np.zeros(t_in.shape)
+        tau_view = np.zeros(t_in.shape)
+        for live, t, length in _march(t_in, t_out, step):
+            z = origin[2] + t * rays[live][:, 2]
+            b = beta[_cell_index(z_edges, z)]
+            radiance[live] += (
+                b * length * np.exp(-(tau_view[live] + 0.5 * b * length)) * sun_transmittance(z)
+            )
+            tau_view[live] += b * length
+        radiance *= albedo * phase
+        if scene.ground_albedo is not None:
+            ground = (t_in < t_out) & (
+                np.abs(origin[2] + t_out * rays[..., 2] - z_edges[0]) <= 1e-9 + 1e-9 * t_out
+            )
+            radiance += np.where(
+                ground,
+                scene.ground_albedo * mu0 / np.pi * sun_transmittance(z_edges[0])
+                * np.exp(-tau_view),
+                0.0,
+            )
+        out[v] = radiance.mean(axis=-1)
+    return out
 
 
 def cloud_masks(
-    measurements: xr.Dataset,
-    box_edges: tuple[np.ndarray, np.ndarray, np.ndarray],
-    threshold: float | None = None,
+    measurements: xr.Dataset, template: xr.Dataset, threshold: float | None = None
 ) -> xr.Dataset:
-    """Cloudy pixels of every view, with each view's background and threshold.
+    """Cloudy pixels of every view.
 
-    The background b_v of view v is the ``BACKGROUND_PERCENTILE`` (20th) percentile of the
-    radiance over the view's pixels whose centre ray crosses the box (clear air seen through
-    the box; pixels that miss the box see nothing and are left out). A pixel is cloudy when
+    The excess e = L - L_clear of each pixel over its clear-sky background
+    (:func:`clear_sky_background`) is cloudy when
 
-        L - b_v > t_v,   t_v = max(RANGE_FRACTION * (L_peak,v - b_v), NOISE_MULTIPLE * sigma)
+        e > max(SIGNAL_FRACTION * e_peak,v, NOISE_MULTIPLE * sigma),
 
-    with L_peak,v the ``PEAK_PERCENTILE`` (99th) percentile over the same pixels, sigma the
-    pixel's ``radiance_noise_std`` (else ``radiance_std_error``, else 0), and the defaults
-    RANGE_FRACTION = 0.05 and NOISE_MULTIPLE = 3. A given ``threshold`` replaces t_v in every
-    view (radiance units above the background). NaN pixels are never cloudy.
+    with e_peak,v the ``SIGNAL_PERCENTILE`` (99th) percentile of the excess over the view's
+    pixels that look into the medium (its cloud signal), sigma the pixel's
+    ``radiance_noise_std`` (else ``radiance_std_error``, else 0), SIGNAL_FRACTION = 0.02
+    and NOISE_MULTIPLE = 3. The noise term keeps noise out; the fraction term is a floor for
+    measurements with small or no noise estimates (it covers the error of the clear-sky
+    model, 1-2.5 % of the air's radiance, and air lit by the cloud). A given ``threshold``
+    [radiance units] replaces the rule in every view. NaN pixels are never cloudy.
 
     Returns:
-        A Dataset with ``cloud_mask`` (view, row, col) int8 (1 cloudy), ``box_pixels``
-        (view, row, col) int8 (1 where the pixel's centre ray crosses the box),
-        ``background`` (view) and ``threshold`` (view).
+        A Dataset with ``cloud_mask`` (view, row, col) int8 (1 cloudy),
+        ``clear_sky_radiance`` (view, row, col) and ``signal_threshold`` (view), the
+        fraction term of the rule (or the given threshold).
     """
     radiance = measurements["radiance"].values
     sigma = np.zeros_like(radiance)
@@ -79,46 +247,51 @@ def cloud_masks(
         if name in measurements:
             sigma = measurements[name].values
             break
-    cams = camera_arrays(Scene.from_dataset(measurements).cameras)
-    lo = np.array([e[0] for e in box_edges])
-    hi = np.array([e[-1] for e in box_edges])
-    in_box = _box_pixels(cams, lo, hi)
-    nview = radiance.shape[0]
-    background = np.zeros(nview)
-    thresholds = np.zeros(nview)
+    scene = Scene.from_dataset(measurements)
+    background = clear_sky_background(scene, template)
+    excess = radiance - background
+    lo, hi = _box(cell_edges(template))
+    if scene.periodic:
+        lo[:2], hi[:2] = -np.inf, np.inf
+    cams = camera_arrays(scene.cameras)
+    signal = np.zeros(radiance.shape[0])
     mask = np.zeros(radiance.shape, dtype=bool)
-    for v in range(nview):
-        seen = radiance[v][in_box[v] & np.isfinite(radiance[v])]
-        if seen.size == 0:
-            raise ValueError(f"view {v} has no measured pixel looking at the box")
-        background[v] = np.percentile(seen, BACKGROUND_PERCENTILE)
+    for v in range(radiance.shape[0]):
         if threshold is None:
-            peak = np.percentile(seen, PEAK_PERCENTILE)
-            range_threshold = RANGE_FRACTION * max(peak - background[v], 0.0)
-            pixel_threshold = np.maximum(range_threshold, NOISE_MULTIPLE * sigma[v])
-            thresholds[v] = range_threshold
+            t_in, t_out = ray_box(cams.position[v], pixel_rays(cams, v)[:, :, 0], lo, hi)
+            seen = excess[v][(t_in < t_out) & np.isfinite(excess[v])]
+            if seen.size:
+                signal[v] = SIGNAL_FRACTION * max(np.percentile(seen, SIGNAL_PERCENTILE), 0.0)
+            pixel_threshold = np.maximum(signal[v], NOISE_MULTIPLE * sigma[v])
         else:
-            pixel_threshold = np.full(radiance.shape[1:], float(threshold))
-            thresholds[v] = float(threshold)
+            signal[v] = pixel_threshold = float(threshold)
         with np.errstate(invalid="ignore"):
-            mask[v] = radiance[v] - background[v] > pixel_threshold
+            mask[v] = excess[v] > pixel_threshold
     dims = ("view", "row", "col")
+    rule = (
+        f"radiance above the clear-sky background by more than max({SIGNAL_FRACTION:g} x "
+        f"the view's p{SIGNAL_PERCENTILE:g} excess, {NOISE_MULTIPLE:g} x the pixel's noise "
+        "std)" if threshold is None else f"radiance above the clear-sky background by more "
+        f"than {threshold:g}"
+    )
     return xr.Dataset(
         {
             "cloud_mask": (dims, mask.astype(np.int8), {
-                "units": "1", "long_name": "pixel judged cloudy (1) or clear (0)"}),
-            "box_pixels": (dims, in_box.astype(np.int8), {
-                "units": "1", "long_name": "pixel whose centre ray crosses the medium's box"}),
-            "background": ("view", background, {
-                "units": "1", "long_name": "clear-sky background radiance of the view"}),
-            "threshold": ("view", thresholds, {
-                "units": "1",
-                "long_name": "radiance above the background for a cloudy pixel",
-                "comment": "pixels also need 3 times their noise standard deviation"
-                if threshold is None else "given threshold"}),
+                "units": "1", "long_name": "pixel judged cloudy (1) or clear (0)",
+                "comment": rule}),
+            "clear_sky_radiance": (dims, background, {
+                "units": "1", "long_name": "clear-sky background radiance (air, ground)"}),
+            "signal_threshold": ("view", signal, {
+                "units": "1", "long_name": "cloudy-pixel threshold above the background "
+                "(before the noise term)"}),
         },
         coords={"view": measurements["view"].values},
     )
+
+
+# ---------------------------------------------------------------------------------------
+# Carving
+# ---------------------------------------------------------------------------------------
 
 
 def carve(
@@ -128,30 +301,31 @@ def carve(
     k: int | None = None,
     threshold: float | None = None,
     subsamples: int = SUBSAMPLES,
-    cloud_g: float = DEFAULT_CLOUD_G,
+    fit_photons: int | None = FIT_PHOTONS,
 ) -> xr.Dataset:
     """The space-carved hull of the cloud on the grid of ``grid_template``.
 
     Args:
         measurements: a measurement set (images with cameras and sun, see
             :mod:`data_synth.measurements`).
-        grid_template: a medium whose grid (x, y, z and z_bounds) the hull is built on.
-            When the measurements record the box of the medium they were made of
-            (``medium_box``), the template's box must be the same (its resolution may
-            differ).
-        k: the number of views that must see a voxel as cloudy (1 <= k <= views);
-            default every view.
-        threshold: cloudy-pixel threshold [radiance above the background]; default the
-            per-view rule of :func:`cloud_masks`.
+        grid_template: a medium whose grid (x, y, z and z_bounds) the hull is built on and
+            whose air gives the clear-sky background. When the measurements record the box
+            of the medium they were made of (``medium_box``), the template's box must be
+            the same (its resolution may differ).
+        k: the number of views that must vote for a voxel (1 <= k <= views); default
+            :func:`default_k`.
+        threshold: cloudy-pixel threshold [radiance above the clear-sky background];
+            default the per-view rule of :func:`cloud_masks`.
         subsamples: sub-cells per axis at whose centres each voxel is projected.
-        cloud_g: the cloud's HG asymmetry parameter, for :func:`extinction_estimate`.
+        fit_photons: photons per trial render of :func:`fit_extinction`, whose result is
+            stored as the attribute ``extinction_estimate`` [km-1]; None skips the fit.
 
     Returns:
         A Dataset on the template's grid with ``hull`` (x, y, z) int8 (1 inside),
-        ``votes`` (x, y, z) (views that see the voxel as cloudy or cannot see it), the
-        variables of :func:`cloud_masks`, ``hull_silhouette`` (view, row, col) int8 (pixels
-        whose centre ray crosses the hull) and the attributes ``k``, ``subsamples`` and
-        ``extinction_estimate`` [km-1].
+        ``votes`` (x, y, z), the variables of :func:`cloud_masks`, ``hull_silhouette``
+        (view, row, col) int8 (pixels whose centre ray crosses the hull) and the attributes
+        ``k``, ``views``, ``subsamples`` and (unless the fit was skipped or the hull is
+        empty) ``extinction_estimate``.
 
     Raises:
         ValueError: a camera inside the box or not seeing it, a template box different
@@ -160,87 +334,177 @@ def carve(
     from data_synth.measurements import validate_measurements
 
     validate_measurements(measurements)
+    validate_medium(grid_template)
     edges = cell_edges(grid_template)
     _check_box(measurements, edges)
     scene = Scene.from_dataset(measurements)
     check_scene(scene, edges)
     nview = len(scene.cameras)
-    k = nview if k is None else int(k)
+    k = default_k(nview) if k is None else int(k)
     if not 1 <= k <= nview:
         raise ValueError(f"k must be between 1 and the number of views ({nview}), got {k}")
     if int(subsamples) < 1:
         raise ValueError(f"subsamples must be >= 1, got {subsamples}")
 
-    masks = cloud_masks(measurements, edges, threshold)
+    masks = cloud_masks(measurements, grid_template, threshold)
     cams = camera_arrays(scene.cameras)
-    radiance = measurements["radiance"].values
-    votes, points_in_view = _votes(
-        cams, masks["cloud_mask"].values.astype(np.bool_), np.isfinite(radiance),
-        *edges, int(subsamples),
-    )
-    blind = np.flatnonzero(points_in_view == 0)
-    if blind.size:
-        raise ValueError(f"camera {int(blind[0])} does not see the template grid's box")
+    observed = np.isfinite(measurements["radiance"].values)
+    votes = _votes(cams, masks["cloud_mask"].values.astype(bool), observed, edges,
+                   int(subsamples))
     hull = votes >= k
-    silhouette = _silhouette(cams, hull, *edges)
 
-    ds = masks.copy()
-    coords = {name: grid_template[name] for name in ("x", "y", "z")}
-    ds = ds.assign_coords(coords)
+    grid = ("x", "y", "z")
+    ds = masks.assign_coords({name: grid_template[name] for name in grid})
     if "z_bounds" in grid_template:
         ds["z_bounds"] = grid_template["z_bounds"]
-    grid = ("x", "y", "z")
     ds["hull"] = (grid, hull.astype(np.int8), {
         "units": "1", "long_name": "space-carved cloud hull (1 inside)"})
     ds["votes"] = (grid, votes, {
         "units": "1", "long_name": "views seeing the voxel as cloudy or not seeing it"})
-    ds["hull_silhouette"] = (("view", "row", "col"), silhouette.astype(np.int8), {
+    ds["hull_silhouette"] = (("view", "row", "col"), _silhouette(cams, hull, edges), {
         "units": "1", "long_name": "pixel whose centre ray crosses the hull"})
     ds.attrs.update(
-        title="cloudct space-carved hull",
-        Conventions="CF-1.8",
-        k=k,
-        views=nview,
+        title="cloudct space-carved hull", Conventions="CF-1.8", k=k, views=nview,
         subsamples=int(subsamples),
-        threshold_rule="given" if threshold is None else f"{threshold:g} above background",
-        extinction_estimate=extinction_estimate(measurements, ds, cloud_g=cloud_g),
-        extinction_estimate_units="km-1",
     )
-    if threshold is None:
-        ds.attrs["threshold_rule"] = (
-            f"per view: max({RANGE_FRACTION:g} * (p{PEAK_PERCENTILE:g} - background), "
-            f"{NOISE_MULTIPLE:g} * pixel noise std) above the p{BACKGROUND_PERCENTILE:g} "
-            "background of the pixels seeing the box"
+    if fit_photons and hull.any():
+        ds.attrs["extinction_estimate"] = fit_extinction(
+            measurements, ds, grid_template, photons=fit_photons
         )
+        ds.attrs["extinction_estimate_units"] = "km-1"
     return ds
 
 
-def extinction_estimate(
-    measurements: xr.Dataset, carved: xr.Dataset, *, cloud_g: float = DEFAULT_CLOUD_G
-) -> float:
-    """A mean cloud extinction [km-1] for the hull, from the images by two-stream theory.
+def default_k(views: int) -> int:
+    """The default vote count of the hull: every view but one, or every view when there are
+    fewer than three."""
+    return views - 1 if views >= 3 else views
 
-    The mean radiance of the cloudy pixels above their view's background, over all views,
-    is read as the reflectance of a plane-parallel, non-absorbing cloud seen under a sun
-    of zenith angle theta0: R = pi L / cos(theta0). The two-stream relation
-    R = (1 - g) tau / (2 + (1 - g) tau) (e.g. Bohren and Clothiaux 2006, Ch. 6) gives the
-    optical thickness tau = 2 R / ((1 - g)(1 - R)), and the extinction is tau over the
-    hull's mean geometric thickness (hull voxels' heights summed per column, averaged over
-    the hull's columns). Finite clouds leak light through their sides and look darker
-    than slabs, so the estimate is on the low side: a starting value, not a retrieval.
+
+def _check_box(measurements: xr.Dataset, edges: tuple[np.ndarray, ...]) -> None:
+    """The template's box must be the one the measurements were made of (when recorded)."""
+    if "medium_box" not in measurements.attrs:
+        return
+    measured = np.asarray(measurements.attrs["medium_box"], dtype=float).ravel()
+    template = np.array([v for e in edges for v in (e[0], e[-1])])
+    tolerance = BOX_RTOL * float(np.max(template[1::2] - template[::2]))
+    if measured.shape != (6,) or not np.allclose(measured, template, rtol=0.0, atol=tolerance):
+        raise ValueError(
+            f"the template grid's box (x, y, z ranges {_ranges(template)} km) differs from "
+            f"the box of the medium the measurements were made of ({_ranges(measured)} km)"
+        )
+
+
+def _ranges(box: np.ndarray) -> str:
+    return ", ".join(f"{box[i]:.4g}..{box[i + 1]:.4g}" for i in range(0, len(box) - 1, 2))
+
+
+def _votes(
+    cams: CameraArrays,
+    cloudy: np.ndarray,
+    observed: np.ndarray,
+    edges: tuple[np.ndarray, np.ndarray, np.ndarray],
+    nsub: int,
+) -> np.ndarray:
+    """Votes per voxel, int16[nx, ny, nz] (the rule is in the module docstring). One z layer
+    at a time, to bound the memory."""
+    fractions = (np.arange(nsub) + 0.5) / nsub
+    sx, sy, sz = (e[:-1, None] + fractions * np.diff(e)[:, None] for e in edges)
+    nview = cams.position.shape[0]
+    votes = np.zeros((len(sx), len(sy), len(sz)), dtype=np.int16)
+    for kz in range(len(sz)):
+        # points[i, j, a, b, c]: sub-centre a of x cell i, b of y cell j, c of this layer
+        px, py, pz = sx[:, None, :, None, None], sy[None, :, None, :, None], sz[kz]
+        points = np.stack(np.broadcast_arrays(px, py, pz[None, None, None, None, :]), axis=-1)
+        for v in range(nview):
+            row, col = project_points(cams, v, points)
+            outside = row < 0
+            r, c = np.where(outside, 0, row), np.where(outside, 0, col)
+            vote = outside | cloudy[v, r, c] | ~observed[v, r, c]
+            votes[:, :, kz] += vote.any(axis=(2, 3, 4))
+    return votes
+
+
+def _silhouette(
+    cams: CameraArrays, hull: np.ndarray, edges: tuple[np.ndarray, np.ndarray, np.ndarray]
+) -> np.ndarray:
+    """int8[view, row, col]: 1 where the pixel's centre ray crosses a hull voxel (marched
+    at steps of a quarter of the smallest cell size)."""
+    lo, hi = _box(edges)
+    step = 0.25 * min(float(np.diff(e).min()) for e in edges)
+    out = np.zeros((cams.position.shape[0], cams.nrows, cams.ncols), dtype=np.int8)
+    for v in range(out.shape[0]):
+        origin = cams.position[v]
+        rays = pixel_rays(cams, v)[:, :, 0]
+        t_in, t_out = ray_box(origin, rays, lo, hi)
+        hit = np.zeros(t_in.shape, dtype=bool)
+        for live, t, _ in _march(t_in, t_out, step):
+            point = origin + t[:, None] * rays[live]
+            index = tuple(_cell_index(e, point[:, a]) for a, e in enumerate(edges))
+            hit[live] |= hull[index]
+        out[v] = hit
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# The initial medium
+# ---------------------------------------------------------------------------------------
+
+
+def fit_extinction(
+    measurements: xr.Dataset,
+    carved: xr.Dataset,
+    template_medium: xr.Dataset,
+    *,
+    photons: int = FIT_PHOTONS,
+    seed: int = 0,
+    rtol: float = 0.01,
+    max_iterations: int = 12,
+) -> float:
+    """The constant cloud extinction [km-1] in the hull whose images are as bright as the
+    measurements.
+
+    The summed radiance of all measured (non-NaN) pixels, B*, is matched by the summed
+    radiance B(beta) of :func:`initial_medium` renders (forward, ``photons`` photons, the
+    same ``seed`` every time so that B varies smoothly with beta). The root of
+    log B(beta) = log B* is found by the secant method in log beta from 5 and 20 km-1,
+    steps limited to a factor of 4 and beta to 10^-3 .. 10^4 km-1, until B matches B* to
+    ``rtol``. This is the best
+    constant in the seed paper's sense of "the average extinction of the cloud" as the
+    forward model sees it: it accounts for the light a finite cloud loses through its sides,
+    which a plane-parallel relation would not.
+
+    Raises:
+        ValueError: no extinction matches within ``max_iterations`` renders (for instance
+            measurements no brighter than the clear sky, or a hull too small to be as
+            bright as the cloud).
     """
-    radiance = measurements["radiance"].values
-    cloudy = carved["cloud_mask"].values.astype(bool)
-    if not cloudy.any() or not carved["hull"].values.any():
-        return 0.0
-    excess = radiance - carved["background"].values[:, None, None]
-    mean_excess = float(np.nanmean(excess[cloudy]))
-    mu0 = math.cos(math.radians(float(measurements.attrs["sun_zenith"])))
-    reflectance = min(math.pi * max(mean_excess, 0.0) / mu0, 0.99)
-    tau = 2.0 * reflectance / ((1.0 - cloud_g) * (1.0 - reflectance))
-    z_edges = cell_edges(carved)[2]
-    thickness = (carved["hull"].values * np.diff(z_edges)).sum(axis=2)
-    return float(tau / thickness[thickness > 0].mean())
+    measured = measurements["radiance"].values
+    observed = np.isfinite(measured)
+    target = float(measured[observed].sum())
+    scene = Scene.from_dataset(measurements)
+
+    def log_ratio(log_beta: float) -> float:
+        medium = initial_medium(carved, template_medium, math.exp(log_beta))
+        images = render(medium, scene, photons=photons, seed=seed, progress=False)
+        return math.log(float(images["radiance"].values[observed].sum()) / target)
+
+    x0, x1 = math.log(5.0), math.log(20.0)
+    f0, f1 = log_ratio(x0), log_ratio(x1)
+    for _ in range(max_iterations):
+        if abs(f1) <= rtol:
+            return math.exp(x1)
+        slope = (f1 - f0) / (x1 - x0) if f1 != f0 else 1.0
+        step = float(np.clip(-f1 / max(slope, 1e-3), -math.log(4.0), math.log(4.0)))
+        x0, f0 = x1, f1
+        x1 = float(np.clip(x1 + step, math.log(1.0e-3), math.log(1.0e4)))
+        f1 = log_ratio(x1)
+    if abs(f1) <= rtol:
+        return math.exp(x1)
+    raise ValueError(
+        f"no hull extinction matches the measured brightness (last {math.exp(x1):.4g} km-1 "
+        f"off by {100 * (math.exp(f1) - 1):+.1f} %)"
+    )
 
 
 def initial_medium(
@@ -252,12 +516,13 @@ def initial_medium(
 
     Args:
         carved: the result of :func:`carve`, or a hull mask (x, y, z) on the template's
-            grid (then ``extinction`` is required).
+            grid.
         template_medium: gives the grid and the air (kept as they are) and, when it is
-            optical, the cloud albedo and phase function (HG g or tabulated); a
-            microphysical template gives the defaults (albedo 0.99, HG g = 0.85).
+            optical, the cloud albedo and phase function (HG g, or the tabulated phase
+            functions with their per-cell index); a microphysical-only template gives the
+            seed paper's cloud (albedo 0.99, HG g = 0.85).
         extinction: the cloud extinction in the hull [km-1]; default the
-            ``extinction_estimate`` of ``carved``.
+            ``extinction_estimate`` that :func:`carve` stored (:func:`fit_extinction`).
 
     Returns:
         A validated optical medium.
@@ -274,9 +539,11 @@ def initial_medium(
     if not (math.isfinite(extinction) and extinction >= 0.0):
         raise ValueError(f"extinction must be finite and >= 0, got {extinction}")
     for name in ("x", "y", "z"):
-        if name not in mask.coords or not np.allclose(
-            mask[name].values, template_medium[name].values, rtol=0.0, atol=1e-9
-        ) or mask.sizes[name] != template_medium.sizes[name]:
+        if (
+            name not in mask.coords
+            or mask.sizes[name] != template_medium.sizes[name]
+            or not np.allclose(mask[name].values, template_medium[name].values, rtol=1e-9)
+        ):
             raise ValueError(f"the hull's grid differs from the template's along {name}")
     hull = mask.transpose("x", "y", "z").values.astype(bool)
     if not hull.any():
@@ -301,133 +568,19 @@ def initial_medium(
         z_bounds=template_medium["z_bounds"].values if "z_bounds" in template_medium else None,
         wavelength=template_medium.attrs.get("wavelength"),
         title="cloudct initial medium (space-carved hull)",
-        source=f"cloudct.retrieval.carving.initial_medium, extinction {extinction:g} km-1",
+        source=f"cloudct.retrieval.carving.initial_medium, extinction {extinction:.6g} km-1",
         **cloud,
     )
 
 
-def _check_box(measurements: xr.Dataset, edges: tuple[np.ndarray, ...]) -> None:
-    """The template's box must be the one the measurements were made of (when recorded)."""
-    if "medium_box" not in measurements.attrs:
-        return
-    measured = np.asarray(measurements.attrs["medium_box"], dtype=float).ravel()
-    template = np.array([v for e in edges for v in (e[0], e[-1])])
-    size = max(float(np.max(template[1::2] - template[::2])), 1e-12)
-    if measured.shape != (6,) or not np.allclose(measured, template, rtol=0, atol=BOX_RTOL * size):
-        raise ValueError(
-            "the template grid's box (x, y, z ranges "
-            f"{_ranges(template)} km) differs from the box the measurements were made of "
-            f"({_ranges(measured)} km)"
-        )
-
-
-def _ranges(box: np.ndarray) -> str:
-    return ", ".join(f"{box[i]:.4g}..{box[i + 1]:.4g}" for i in range(0, len(box), 2))
-
-
-def _box_pixels(cams: CameraArrays, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """bool[view, row, col]: the pixel's centre ray crosses the box [lo, hi]."""
-    nview = cams.position.shape[0]
-    out = np.zeros((nview, cams.nrows, cams.ncols), dtype=np.bool_)
-    _box_pixels_kernel(cams, lo, hi, out)
-    return out
-
-
-@njit(cache=True)
-def _ray_box(ox, oy, oz, dx, dy, dz, lo, hi):
-    """Entry and exit distances of the ray o + t d through the box (t_in > t_out: missed)."""
-    t_in, t_out = 0.0, np.inf
-    for o, d, a, b in ((ox, dx, lo[0], hi[0]), (oy, dy, lo[1], hi[1]), (oz, dz, lo[2], hi[2])):
-        if d == 0.0:
-            if o < a or o > b:
-                return 1.0, 0.0
-        else:
-            t0 = (a - o) / d
-            t1 = (b - o) / d
-            t_in = max(t_in, min(t0, t1))
-            t_out = min(t_out, max(t0, t1))
-    return t_in, t_out
-
-
-@njit(cache=True)
-def _box_pixels_kernel(cams, lo, hi, out):
-    for v in range(out.shape[0]):
-        p = cams.position[v]
-        for row in range(cams.nrows):
-            for col in range(cams.ncols):
-                dx, dy, dz = pixel_ray(cams, v, row, col, 0.5, 0.5)
-                t_in, t_out = _ray_box(p[0], p[1], p[2], dx, dy, dz, lo, hi)
-                out[v, row, col] = t_in < t_out
-
-
-@njit(cache=True)
-def _votes(cams, cloudy, observed, x_edges, y_edges, z_edges, nsub):
-    """Votes per voxel, int16[nx, ny, nz], and the number of sub-cell centres that land in
-    each view's image, int64[nview] (see the module docstring for the rule)."""
-    nx, ny, nz = len(x_edges) - 1, len(y_edges) - 1, len(z_edges) - 1
-    nview = cams.position.shape[0]
-    votes = np.zeros((nx, ny, nz), dtype=np.int16)
-    landed = np.zeros((nx, nview), dtype=np.int64)
-    for i in range(nx):
-        for j in range(ny):
-            for kz in range(nz):
-                for v in range(nview):
-                    vote = False
-                    for a in range(nsub):
-                        px = x_edges[i] + (a + 0.5) / nsub * (x_edges[i + 1] - x_edges[i])
-                        for b in range(nsub):
-                            py = y_edges[j] + (b + 0.5) / nsub * (y_edges[j + 1] - y_edges[j])
-                            for c in range(nsub):
-                                pz = z_edges[kz] + (c + 0.5) / nsub * (
-                                    z_edges[kz + 1] - z_edges[kz])
-                                row, col, _, _, _, _ = project(cams, v, px, py, pz)
-                                if row < 0:
-                                    vote = True
-                                    continue
-                                landed[i, v] += 1
-                                if cloudy[v, row, col] or not observed[v, row, col]:
-                                    vote = True
-                    if vote:
-                        votes[i, j, kz] += 1
-    return votes, landed.sum(axis=0)
-
-
-@njit(cache=True)
-def _voxel_index(edges, t):
-    """Index of the cell of ``edges`` containing t (clamped to the grid)."""
-    return min(max(np.searchsorted(edges, t, side="right") - 1, 0), len(edges) - 2)
-
-
-@njit(cache=True)
-def _silhouette(cams, hull, x_edges, y_edges, z_edges):
-    """bool[view, row, col]: the pixel's centre ray crosses a hull voxel (ray marched at
-    steps of a quarter of the smallest cell size)."""
-    nview = cams.position.shape[0]
-    out = np.zeros((nview, cams.nrows, cams.ncols), dtype=np.bool_)
-    lo = np.array([x_edges[0], y_edges[0], z_edges[0]])
-    hi = np.array([x_edges[-1], y_edges[-1], z_edges[-1]])
-    step = 0.25 * min(np.diff(x_edges).min(), np.diff(y_edges).min(), np.diff(z_edges).min())
-    for v in range(nview):
-        p = cams.position[v]
-        for row in range(cams.nrows):
-            for col in range(cams.ncols):
-                dx, dy, dz = pixel_ray(cams, v, row, col, 0.5, 0.5)
-                t_in, t_out = _ray_box(p[0], p[1], p[2], dx, dy, dz, lo, hi)
-                t = t_in + 0.5 * step
-                while t < t_out:
-                    i = _voxel_index(x_edges, p[0] + t * dx)
-                    j = _voxel_index(y_edges, p[1] + t * dy)
-                    kz = _voxel_index(z_edges, p[2] + t * dz)
-                    if hull[i, j, kz]:
-                        out[v, row, col] = True
-                        break
-                    t += step
-    return out
+# ---------------------------------------------------------------------------------------
+# Figure and command line
+# ---------------------------------------------------------------------------------------
 
 
 def save_hull_figure(carved: xr.Dataset, measurements: xr.Dataset, path: str | Path) -> Path:
-    """A figure of every view: the measured image with the outline of its cloudy pixels
-    (cyan) and of the hull's silhouette (red). Returns the path written."""
+    """Every view's measured image with the outlines of its cloudy pixels (cyan) and of the
+    hull's silhouette (red). Returns the path written."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -451,8 +604,7 @@ def save_hull_figure(carved: xr.Dataset, measurements: xr.Dataset, path: str | P
         ax.set_title(f"view {v}", fontsize=8)
     fig.suptitle(
         f"space carving: cloudy pixels (cyan), hull silhouette (red); k = {carved.attrs['k']} "
-        f"of {nview}, {int(carved['hull'].sum())} voxels, "
-        f"extinction estimate {carved.attrs['extinction_estimate']:.3g} /km",
+        f"of {nview} views, {int(carved['hull'].sum())} voxels",
         fontsize=9,
     )
     fig.tight_layout()
@@ -472,17 +624,19 @@ def _cli_carve(args: argparse.Namespace) -> int:
     output = Path(args.output)
     if output.exists() and not args.overwrite:
         raise FileExistsError(f"{output} exists (use --overwrite)")
-    carved = carve(measurements, template, k=args.k, threshold=args.threshold)
-    medium = initial_medium(carved, template, extinction=args.extinction)
+    carved = carve(
+        measurements, template, k=args.k, threshold=args.threshold,
+        fit_photons=args.fit_photons if args.extinction is None else None,
+    )
+    medium = initial_medium(carved, template, args.extinction)
     save_medium(medium, output, overwrite=args.overwrite)
-    text = ""
-    if args.figure:
-        text = f" and {save_hull_figure(carved, measurements, args.figure)}"
-    extinction = float(medium["cloud_extinction"].max())
+    figure = "" if args.figure is None else (
+        f" and {save_hull_figure(carved, measurements, args.figure)}"
+    )
     print(
-        f"wrote {output}{text}: hull of {int(carved['hull'].sum())} of "
+        f"wrote {output}{figure}: hull of {int(carved['hull'].sum())} of "
         f"{carved['hull'].size} voxels (k = {carved.attrs['k']} of {carved.attrs['views']} "
-        f"views), cloud extinction {extinction:.3g} /km"
+        f"views), cloud extinction {float(medium['cloud_extinction'].max()):.4g} /km"
     )
     return 0
 
@@ -493,17 +647,21 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
         "carve",
         help="space-carve the cloud's hull from measurements into an initial medium",
         description="Space carving (seed paper Sec. 6.1.1): voxels seen as cloudy by at "
-        "least K views form the hull, filled with a constant extinction (default: a "
-        "two-stream estimate from the images) on the grid of a template medium.",
+        "least K views form the hull, filled with a constant extinction (default: the one "
+        "whose rendered images match the measured brightness) on a template medium's grid.",
     )
     p.add_argument("measurements", help="measurement netCDF (from `cloudct synth`)")
     p.add_argument("-o", "--output", default="init.nc", help="output medium netCDF")
-    p.add_argument("--medium", help="template medium netCDF giving the grid and air "
+    p.add_argument("--medium", help="template medium netCDF giving the grid and the air "
                    "(default: the bundled single cloud)")
-    p.add_argument("--k", type=int, help="views that must see a voxel as cloudy (default all)")
-    p.add_argument("--threshold", type=float,
-                   help="cloudy-pixel radiance above the background (default per view)")
-    p.add_argument("--extinction", type=float, help="cloud extinction in the hull [1/km]")
-    p.add_argument("--figure", help="PNG of the views with the hull's silhouette")
+    p.add_argument("--k", type=int,
+                   help="views that must see a voxel as cloudy (default: all but one)")
+    p.add_argument("--threshold", type=float, help="cloudy-pixel radiance above the "
+                   "clear-sky background (default: per-view rule)")
+    p.add_argument("--extinction", type=float,
+                   help="cloud extinction in the hull [1/km] (default: fitted)")
+    p.add_argument("--fit-photons", type=int, default=FIT_PHOTONS,
+                   help="photons per trial render of the extinction fit")
+    p.add_argument("--figure", help="PNG of the views with the cloudy pixels and the hull")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cli_carve)

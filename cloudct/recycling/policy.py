@@ -1,0 +1,65 @@
+"""When to resample the stored paths: re-use policies for path recycling.
+
+- :class:`FixedPeriod`: the seed paper's Alg. 2, new paths every ``period`` (N_r)
+  iterations.
+- :class:`AdaptiveESS`: new paths when the effective sample size of the correction factors,
+  ESS = (sum_i r_i)^2 / sum_i r_i^2 over the stored paths, falls below ``min_fraction`` of
+  the number of paths, and at the latest after ``max_period`` iterations.
+
+A policy is asked before every evaluation with the number of evaluations the current paths
+have served (``age``) and, for policies with ``uses_ess``, the smallest ESS fraction of
+the recycler's stores under the new medium; it answers with a reason to resample (a short
+string, logged) or None.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, Protocol
+
+
+class Policy(Protocol):
+    """What :class:`cloudct.recycling.Recycler` asks of a re-use policy."""
+
+    uses_ess: ClassVar[bool]
+
+    def resample_reason(self, age: int, ess_fraction: float | None) -> str | None:
+        """Why to resample before this evaluation, or None to recycle."""
+
+
+@dataclass(frozen=True)
+class FixedPeriod:
+    """Resample every ``period`` evaluations (period 1: fresh paths every iteration)."""
+
+    period: int = 30
+    uses_ess: ClassVar[bool] = False
+
+    def __post_init__(self) -> None:
+        if int(self.period) != self.period or self.period < 1:
+            raise ValueError(f"period must be a positive integer, got {self.period}")
+
+    def resample_reason(self, age: int, ess_fraction: float | None) -> str | None:
+        return "period" if age >= self.period else None
+
+
+@dataclass(frozen=True)
+class AdaptiveESS:
+    """Resample when the ESS fraction of the correction factors drops below
+    ``min_fraction``, or when the paths have served ``max_period`` evaluations."""
+
+    min_fraction: float = 0.5
+    max_period: int = 50
+    uses_ess: ClassVar[bool] = True
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.min_fraction <= 1.0:
+            raise ValueError(f"min_fraction must be in (0, 1], got {self.min_fraction}")
+        if int(self.max_period) != self.max_period or self.max_period < 1:
+            raise ValueError(f"max_period must be a positive integer, got {self.max_period}")
+
+    def resample_reason(self, age: int, ess_fraction: float | None) -> str | None:
+        if age >= self.max_period:
+            return "max_period"
+        if ess_fraction is not None and ess_fraction < self.min_fraction:
+            return "ess"
+        return None

@@ -1,0 +1,279 @@
+"""The recycler: what a retrieval loop calls every iteration (seed paper Alg. 2).
+
+::
+
+    recycler = Recycler(scene, photons=10**6, policy=AdaptiveESS(0.5, 50),
+                        memory_budget=4 * 2**30, seed=0)
+    for t in range(iterations):
+        ev = recycler.evaluate(medium, residual=lambda images: w * (images.radiance.values
+                                                                    - measured))
+        medium = step(medium, ev.gradient)          # ev.images, ev.info["ess_fraction"], ...
+
+Every call re-evaluates stored paths under the current medium, after resampling them (under
+the current medium, which becomes the reference) when the policy says so. The images that
+form the residual and the gradient come from two independent stores (independent random
+streams), so that their product is an unbiased estimate of the product of their means
+(see :mod:`cloudct.retrieval.loss`): the images store is replayed in RENDER mode, the
+residual computed from those images, and the gradient store replayed in GRADIENT mode with
+that residual. Keeping two stores costs twice the memory of one; rendering the residual
+images fresh instead would cost about as much time as replaying them (both are dominated by
+the local estimates), so both are stored and recycled. Each store has its own age and is
+resampled on its own; every decision is logged in :attr:`Recycler.log` and through the
+``logging`` module.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import xarray as xr
+
+from cloudct.mc.render import images_dataset
+from cloudct.mc.scene import Scene
+from cloudct.medium import cell_edges
+from cloudct.recycling.policy import AdaptiveESS, Policy
+from cloudct.recycling.replay import (
+    correction_log_weights,
+    effective_sample_size,
+    replay_gradient,
+    replay_images,
+)
+from cloudct.recycling.store import PathStore, check_same_grid, record_paths
+
+logger = logging.getLogger(__name__)
+
+STORES = ("images", "gradient")
+
+
+class Evaluation(NamedTuple):
+    """One evaluation of the recycler under a medium."""
+
+    images: xr.Dataset  # radiance and radiance_std_error over (view, row, col)
+    residual: np.ndarray | None  # the pixel weights the gradient used (None: no gradient)
+    gradient: np.ndarray | None  # sum_d residual_d dI_d / d beta_cloud over (x, y, z)
+    gradient_std_error: np.ndarray | None
+    info: dict  # iteration, resampled, reasons, ess fractions, ages, times, memory
+
+
+@dataclass
+class _Slot:
+    photons: int
+    store: PathStore | None = None
+    age: int = 0  # evaluations served by the current store
+    generation: int = 0  # stores recorded so far
+
+
+def store_seed(seed: int, generation: int, which: int) -> int:
+    """Seed of the random streams of store ``which`` (0 images, 1 gradient) of a given
+    generation: independent streams for every store the recycler ever records."""
+    state = np.random.SeedSequence([int(seed), int(generation), int(which)]).generate_state(
+        1, np.uint64
+    )
+    return int(state[0] >> np.uint64(1))
+
+
+class Recycler:
+    """Path recycling for a retrieval loop (see the module documentation).
+
+    Parameters
+    ----------
+    scene
+        Cameras, sun, boundaries and ground (fixed for the recycler's life).
+    photons
+        Paths in the images store (rounded up to a multiple of ``batches``).
+    gradient_photons
+        Paths in the gradient store (default: ``photons``).
+    batches
+        Independent batches for standard errors.
+    policy
+        :class:`~cloudct.recycling.policy.FixedPeriod` or
+        :class:`~cloudct.recycling.policy.AdaptiveESS` (the default, 0.5 and 50).
+    memory_budget
+        Bytes for both stores together (None: no limit), shared in proportion to their
+        photons; ``storage="auto"`` stores voxel crossings where they fit.
+    storage
+        ``"auto"``, ``"crossings"`` or ``"lean"`` (see :mod:`cloudct.recycling.store`).
+    seed
+        Seed of all the recycler's random streams.
+    rr_depth, rr_survival
+        Russian roulette, as for :func:`cloudct.mc.render.render`.
+    sort
+        Sort each store's paths by length (path sorting).
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        *,
+        photons: int,
+        gradient_photons: int | None = None,
+        batches: int = 32,
+        policy: Policy | None = None,
+        memory_budget: float | None = None,
+        storage: str = "auto",
+        seed: int = 0,
+        rr_depth: int = 100,
+        rr_survival: float = 0.95,
+        sort: bool = True,
+        progress: bool | None = False,
+    ) -> None:
+        gradient_photons = photons if gradient_photons is None else gradient_photons
+        if int(photons) < 1 or int(gradient_photons) < 1:
+            raise ValueError("photons and gradient_photons must be positive counts")
+        if int(batches) < 2:
+            raise ValueError(f"batches must be at least 2 for standard errors, got {batches}")
+        self.scene = scene
+        self.batches = int(batches)
+        self.policy = AdaptiveESS() if policy is None else policy
+        self.memory_budget = memory_budget
+        self.storage = storage
+        self.seed = int(seed)
+        self.rr_depth = int(rr_depth)
+        self.rr_survival = float(rr_survival)
+        self.sort = bool(sort)
+        self.progress = progress
+        self._slots = {
+            "images": _Slot(int(photons)),
+            "gradient": _Slot(int(gradient_photons)),
+        }
+        self.iteration = 0
+        #: One dict per evaluation: iteration, reasons, ESS fractions, ages, times.
+        self.log: list[dict] = []
+
+    # -- stores ---------------------------------------------------------------------------
+
+    @property
+    def image_store(self) -> PathStore | None:
+        """The store the images (and so the residual) are replayed from."""
+        return self._slots["images"].store
+
+    @property
+    def gradient_store(self) -> PathStore | None:
+        """The store the gradient is replayed from."""
+        return self._slots["gradient"].store
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the stores."""
+        return sum(s.store.nbytes for s in self._slots.values() if s.store is not None)
+
+    def _budget(self, name: str) -> float | None:
+        if self.memory_budget is None:
+            return None
+        total = sum(s.photons for s in self._slots.values())
+        return self.memory_budget * self._slots[name].photons / total
+
+    def resample(self, medium: xr.Dataset, which: tuple[str, ...] = STORES) -> None:
+        """Record new paths under ``medium`` (the new reference) for the named stores."""
+        for name in which:
+            slot = self._slots[name]
+            slot.store = None  # release the old paths before recording new ones
+            slot.store = record_paths(
+                medium, self.scene, photons=slot.photons,
+                seed=store_seed(self.seed, slot.generation, STORES.index(name)),
+                batches=self.batches, storage=self.storage, memory_budget=self._budget(name),
+                sort=self.sort, rr_depth=self.rr_depth, rr_survival=self.rr_survival,
+                progress=self.progress,
+            )
+            slot.generation += 1
+            slot.age = 0
+
+    # -- the call of every iteration ----------------------------------------------------
+
+    def evaluate(
+        self,
+        medium: xr.Dataset,
+        residual: Callable[[xr.Dataset], np.ndarray] | np.ndarray | None = None,
+    ) -> Evaluation:
+        """Images of ``medium`` and, given a ``residual``, the residual-weighted gradient.
+
+        ``residual`` is either a function of the images Dataset returning the pixel weights
+        r_d (e.g. w_d (I_d - I_d^measured), seed paper Eq. 48), or fixed weights over
+        (view, row, col), or None for images only. Stores are resampled first where the
+        policy says so (or where none exists yet). The medium must be on the grid of the
+        stores (call :meth:`resample` after changing the grid).
+        """
+        start = time.perf_counter()
+        edges = cell_edges(medium)
+        for slot in self._slots.values():
+            if slot.store is not None:
+                check_same_grid(slot.store, edges)
+        needed = ("images",) if residual is None else STORES
+        reasons: dict[str, str | None] = {}
+        checked_ess: dict[str, float] = {}
+        record_time = 0.0
+        for name in needed:
+            slot = self._slots[name]
+            if slot.store is None:
+                reason = "initial"
+            else:
+                ess = None
+                if self.policy.uses_ess:
+                    log_r = correction_log_weights(slot.store, medium)
+                    ess = effective_sample_size(log_r) / slot.store.paths
+                    checked_ess[name] = ess
+                reason = self.policy.resample_reason(slot.age, ess)
+            if reason is not None:
+                t0 = time.perf_counter()
+                self.resample(medium, (name,))
+                record_time += time.perf_counter() - t0
+            reasons[name] = reason
+
+        store = self._slots["images"].store
+        batch_images, image_info = replay_images(store, medium, self.progress)
+        images = images_dataset(
+            batch_images.mean(axis=0),
+            batch_images.std(axis=0, ddof=1) / math.sqrt(store.batches),
+            self.scene,
+            method="forward-recycled",
+            photons=store.paths,
+            seed=store.seed,
+            batches=store.batches,
+            events=image_info["events"],
+            wall_time=image_info["wall_time"],
+            rr_depth=store.rr_depth,
+            rr_survival=store.rr_survival,
+            storage=store.storage,
+            ess_fraction=image_info["ess_fraction"],
+        )
+        weights = gradient = gradient_se = None
+        gradient_info: dict = {}
+        if residual is not None:
+            weights = residual(images) if callable(residual) else residual
+            gradient, gradient_se, gradient_info = replay_gradient(
+                self._slots["gradient"].store, medium, weights, self.progress
+            )
+        for name in needed:
+            self._slots[name].age += 1
+        info = {
+            "iteration": self.iteration,
+            "resampled": any(r is not None for r in reasons.values()),
+            "reasons": reasons,
+            "ess_images": image_info["ess_fraction"],
+            "ess_gradient": gradient_info.get("ess_fraction"),
+            "ess_checked": checked_ess,
+            "age": {name: self._slots[name].age for name in needed},
+            "record_time": record_time,
+            "images_time": image_info["wall_time"],
+            "gradient_time": gradient_info.get("wall_time", 0.0),
+            "bytes": self.nbytes,
+        }
+        fractions = [f for f in (info["ess_images"], info["ess_gradient"]) if f is not None]
+        info["ess_fraction"] = min(fractions)
+        info["wall_time"] = time.perf_counter() - start
+        self.log.append(info)
+        logger.info(
+            "recycling iteration %d: %s, ESS fraction %.3f, ages %s, %.2f s",
+            self.iteration,
+            "resampled (" + ", ".join(f"{k}: {v}" for k, v in reasons.items() if v) + ")"
+            if info["resampled"] else "recycled",
+            info["ess_fraction"], info["age"], info["wall_time"],
+        )
+        self.iteration += 1
+        return Evaluation(images, weights, gradient, gradient_se, info)

@@ -1,0 +1,149 @@
+"""``cloudct retrieve``, ``cloudct report`` and ``cloudct demo``."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import xarray as xr
+
+from cloudct.medium import load_medium
+from cloudct.retrieval.loop import Retrieval, RetrievalConfig
+from cloudct.retrieval.report import write_report
+
+
+def _refuse_overwrite(path: Path, overwrite: bool) -> None:
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists (use --overwrite)")
+
+
+def _initial_medium(measurements: xr.Dataset, init: str, template: str | None) -> xr.Dataset:
+    """The starting medium: space carving of the measurements, or a medium file."""
+    if init != "carve":
+        return load_medium(init)
+    from cloudct.mc.render import single_cloud_medium
+    from cloudct.retrieval.carving import carve, initial_medium
+
+    grid = single_cloud_medium() if template is None else load_medium(template)
+    return initial_medium(carve(measurements, grid), grid)
+
+
+def _config(args: argparse.Namespace) -> RetrievalConfig:
+    return RetrievalConfig(
+        iterations=args.iterations, photons=args.photons, optimizer=args.optimizer,
+        step=args.step, seed=args.seed, checkpoint_every=args.checkpoint_every,
+        time_limit=args.time_limit,
+    )
+
+
+def _cli_retrieve(args: argparse.Namespace) -> int:
+    from data_synth.measurements import load_measurements
+
+    output = Path(args.output)
+    _refuse_overwrite(output, args.overwrite)
+    measurements = load_measurements(args.measurements)
+    truth = load_medium(args.truth) if args.truth else None
+    initial = _initial_medium(measurements, args.init, args.medium)
+    checkpoint = Path(args.checkpoint or output.with_suffix(".checkpoint.nc"))
+    if args.resume:
+        run = Retrieval.resume(checkpoint, measurements, initial, truth=truth,
+                               iterations=args.iterations)
+    else:
+        _refuse_overwrite(checkpoint, args.overwrite)
+        run = Retrieval(measurements, initial, _config(args), truth=truth)
+    result = run.run(checkpoint=checkpoint, progress=None)
+    result.to_netcdf(output)
+    print(f"wrote {output} ({run.state.iteration} iterations, {run.state.elapsed:.0f} s); "
+          f"checkpoint {checkpoint}")
+    return 0
+
+
+def _cli_report(args: argparse.Namespace) -> int:
+    from data_synth.measurements import load_measurements
+
+    result = xr.load_dataset(args.result)
+    truth = load_medium(args.truth) if args.truth else None
+    measurements = load_measurements(args.measurements) if args.measurements else None
+    summary = write_report(result, args.output, truth=truth, measurements=measurements)
+    print(f"wrote {summary}")
+    return 0
+
+
+def _cli_demo(args: argparse.Namespace) -> int:
+    """The whole chain on the bundled single cloud: measurements, carving, retrieval, report."""
+    from cloudct.mc.render import single_cloud_medium
+    from cloudct.medium import save_medium
+    from cloudct.retrieval.carving import carve, initial_medium
+    from data_synth.measurements import save_measurements, synthesize_measurements
+
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    truth = single_cloud_medium()
+    print(f"1/4 synthesising measurements ({args.measurement_photons} photons) ...")
+    measurements = synthesize_measurements(truth, photons=args.measurement_photons, seed=1)
+    save_measurements(measurements, out / "measurements.nc", overwrite=True)
+    save_medium(truth, out / "truth.nc", overwrite=True)
+    print("2/4 space carving ...")
+    initial = initial_medium(carve(measurements, truth), truth)
+    save_medium(initial, out / "init.nc", overwrite=True)
+    print(f"3/4 retrieving ({args.iterations} iterations, {args.photons} photons each) ...")
+    config = RetrievalConfig(iterations=args.iterations, photons=args.photons, step=args.step,
+                             time_limit=args.time_limit)
+    run = Retrieval(measurements, initial, config, truth=truth)
+    result = run.run(checkpoint=out / "checkpoint.nc", progress=None)
+    result.to_netcdf(out / "result.nc")
+    print("4/4 report ...")
+    summary = write_report(result, out / "report", truth=truth, measurements=measurements,
+                           render_photons=args.photons * 4)
+    eps = float(result["log_epsilon"].values[-1])
+    delta = float(result["log_delta"].values[-1])
+    print(f"done in {time.perf_counter() - start:.0f} s: epsilon {eps:.1%}, delta {delta:+.1%}; "
+          f"report {summary}")
+    return 0
+
+
+def _add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) -> None:
+    p.add_argument("--iterations", type=int, default=iterations)
+    p.add_argument("--photons", type=int, default=photons, help="photons per iteration")
+    p.add_argument("--step", type=float, default=2.0, help="step size [1/km per iteration]")
+    p.add_argument("--time-limit", type=float, default=None, help="stop after S seconds")
+
+
+def register_cli(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``retrieve``, ``report`` and ``demo``."""
+    r = subparsers.add_parser(
+        "retrieve", help="retrieve a cloud's 3D extinction from multi-view measurements",
+        description="Retrieve the cloud extinction from a measurement netCDF (cloudct synth).",
+    )
+    r.add_argument("measurements", help="measurement netCDF")
+    r.add_argument("--init", default="carve", help="'carve' or an initial medium netCDF")
+    r.add_argument("--medium", help="template medium for the grid and air (with --init carve)")
+    r.add_argument("--truth", help="true medium netCDF: epsilon and delta are logged")
+    r.add_argument("-o", "--output", default="result.nc")
+    r.add_argument("--checkpoint", help="checkpoint file (default: OUTPUT.checkpoint.nc)")
+    r.add_argument("--checkpoint-every", type=int, default=20)
+    r.add_argument("--resume", action="store_true", help="continue from the checkpoint")
+    r.add_argument("--optimizer", choices=("adam", "sgd"), default="adam")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--overwrite", action="store_true")
+    _add_run_options(r, iterations=300, photons=100_000)
+    r.set_defaults(func=_cli_retrieve)
+
+    p = subparsers.add_parser("report", help="figures and a summary of a retrieval result")
+    p.add_argument("result", help="result netCDF from cloudct retrieve")
+    p.add_argument("--truth", help="true medium netCDF")
+    p.add_argument("--measurements", help="measurement netCDF (re-rendered images)")
+    p.add_argument("-o", "--output", default="report")
+    p.set_defaults(func=_cli_report)
+
+    d = subparsers.add_parser(
+        "demo", help="the whole chain on the bundled single cloud (a few minutes)",
+        description="Synthesise measurements of the bundled single cloud, carve, retrieve and "
+        "report.",
+    )
+    d.add_argument("-o", "--output", default="cloudct_demo")
+    d.add_argument("--measurement-photons", type=int, default=10_000_000)
+    _add_run_options(d, iterations=60, photons=100_000)
+    d.set_defaults(func=_cli_demo)

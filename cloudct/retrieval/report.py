@@ -1,0 +1,132 @@
+"""Retrieval reports: epsilon/delta (seed paper Eq. 54), their history, the loss curve,
+slices and a scatter plot of retrieved vs true extinction, and re-rendered vs measured
+images, as PNG figures plus a Markdown summary."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from cloudct.retrieval.metrics import epsilon_delta
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def write_report(
+    result: xr.Dataset,
+    directory: str | Path,
+    *,
+    truth: xr.Dataset | None = None,
+    measurements: xr.Dataset | None = None,
+    render_photons: int = 1_000_000,
+) -> Path:
+    """Write figures and ``summary.md`` for a retrieval result; returns the summary path."""
+    plt = _plt()
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    lines = [f"# cloudct retrieval report: {result.attrs.get('title', '')}", ""]
+    config = json.loads(result.attrs.get("config", "{}"))
+    lines += [
+        f"- run id: `{result.attrs.get('run_id', '?')}`",
+        f"- iterations: {result.attrs.get('iterations_done', '?')}, wall time "
+        f"{float(result.attrs.get('elapsed_s', np.nan)):.0f} s, final stage "
+        f"{result.attrs.get('stage', '?')}",
+        f"- settings: `{json.dumps(config)}`",
+        "",
+    ]
+    beta = result["cloud_extinction"].values
+    if "log_loss" in result:
+        seconds = result["log_seconds"].values
+        fig, ax = plt.subplots(figsize=(5, 3.5))
+        ax.semilogy(seconds, result["log_loss"].values, lw=1)
+        ax.set_xlabel("wall time [s]")
+        ax.set_ylabel("loss (Eq. 41)")
+        ax.set_title("loss (stages differ in pixel count)", fontsize=9)
+        fig.tight_layout()
+        fig.savefig(out / "loss.png", dpi=110)
+        plt.close(fig)
+        lines += ["![loss](loss.png)", ""]
+    if truth is not None:
+        true_beta = truth["cloud_extinction"].values
+        eps, delta = epsilon_delta(true_beta, beta)
+        lines += ["## Error against the truth (Eq. 54)", "",
+                  "| epsilon | delta |", "| --- | --- |", f"| {eps:.1%} | {delta:+.1%} |", ""]
+        if "log_epsilon" in result and np.isfinite(result["log_epsilon"].values).any():
+            fig, ax = plt.subplots(figsize=(5, 3.5))
+            ax.plot(result["log_seconds"].values, result["log_epsilon"].values, label="epsilon")
+            ax.plot(result["log_seconds"].values, result["log_delta"].values, label="delta")
+            ax.axhline(0, color="k", lw=0.5)
+            ax.set_xlabel("wall time [s]")
+            ax.legend()
+            fig.tight_layout()
+            fig.savefig(out / "epsilon_delta.png", dpi=110)
+            plt.close(fig)
+            lines += ["![epsilon and delta](epsilon_delta.png)", ""]
+        _slices(plt, true_beta, beta, out / "slices.png")
+        fig, ax = plt.subplots(figsize=(4.2, 4))
+        cloudy = (true_beta > 0) | (beta > 0)
+        ax.scatter(true_beta[cloudy], beta[cloudy], s=3, alpha=0.4)
+        top = max(true_beta.max(), beta.max())
+        ax.plot([0, top], [0, top], "k--", lw=0.8)
+        ax.set_xlabel("true extinction [1/km]")
+        ax.set_ylabel("retrieved extinction [1/km]")
+        fig.tight_layout()
+        fig.savefig(out / "scatter.png", dpi=110)
+        plt.close(fig)
+        lines += ["![slices](slices.png)", "", "![scatter](scatter.png)", ""]
+    if measurements is not None:
+        from cloudct.mc.render import render
+        from cloudct.mc.scene import Scene
+
+        images = render(result, Scene.from_dataset(measurements), photons=render_photons,
+                        progress=False)
+        _images(plt, measurements["radiance"].values, images["radiance"].values,
+                out / "images.png")
+        rel = np.abs(images["radiance"].values - measurements["radiance"].values).sum() / (
+            np.abs(measurements["radiance"].values).sum()
+        )
+        lines += ["## Re-rendered vs measured images", "",
+                  f"Relative L1 image difference: {rel:.1%} ({render_photons} photons).", "",
+                  "![images](images.png)", ""]
+    summary = out / "summary.md"
+    summary.write_text("\n".join(lines))
+    return summary
+
+
+def _slices(plt, truth: np.ndarray, beta: np.ndarray, path: Path) -> None:
+    ks = np.unique(np.linspace(0, truth.shape[2] - 1, 4).round().astype(int))
+    top = max(truth.max(), beta.max())
+    fig, axes = plt.subplots(2, len(ks), figsize=(2.6 * len(ks), 5.2), squeeze=False)
+    for col, k in enumerate(ks):
+        for row, (data, name) in enumerate(((truth, "true"), (beta, "retrieved"))):
+            ax = axes[row, col]
+            ax.imshow(data[:, :, k].T, origin="lower", vmin=0, vmax=top, cmap="viridis")
+            ax.set_title(f"{name}, z index {k}", fontsize=8)
+            ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _images(plt, measured: np.ndarray, rendered: np.ndarray, path: Path) -> None:
+    nv = measured.shape[0]
+    vmax = max(measured.max(), rendered.max())
+    fig, axes = plt.subplots(2, nv, figsize=(1.9 * nv, 4.0), squeeze=False)
+    for v in range(nv):
+        for row, (data, name) in enumerate(((measured, "measured"), (rendered, "retrieved"))):
+            axes[row, v].imshow(data[v], cmap="gray", vmin=0, vmax=vmax)
+            axes[row, v].set_title(f"{name} {v}", fontsize=7)
+            axes[row, v].axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,113 @@
+"""The CUDA back end on a real GPU (skipped where there is none; see test_cuda_sim.py).
+
+On a GPU the per-photon routines are compiled by NVVM, whose exp/log (libdevice) and
+fused multiply-adds may differ from the CPU's in the last bit, so a photon's path can
+occasionally take a different branch. Hence:
+
+- same seed, per photon (RESIDUAL pass): nearly all vertex counts identical, and the path
+  sums of those photons equal to 1e-9 relative;
+- different seeds: GPU and CPU images and gradients agree within their standard errors
+  (independent estimates of the same expectation, :func:`mcstats.assert_consistent`).
+
+Run on a GPU machine with ``python -m pytest tests/test_cuda_gpu.py tests/test_cuda_sim.py``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+
+import numpy as np
+import pytest
+from mcstats import assert_consistent
+
+if importlib.util.find_spec("numba_cuda") is None:
+    pytest.fail("numba-cuda is not installed: pip install -e '.[test]'", pytrace=False)
+
+from numba import config, cuda  # noqa: E402
+
+from cloudct.mc.cameras import Camera  # noqa: E402
+from cloudct.mc.forward import RESIDUAL, trace_photon  # noqa: E402
+from cloudct.mc.gradient import score_function_gradient  # noqa: E402
+from cloudct.mc.render import kernel_inputs, render_batches  # noqa: E402
+from cloudct.mc.scene import Scene  # noqa: E402
+from cloudct.mc.sun import Sun  # noqa: E402
+from cloudct.medium import optical_medium  # noqa: E402
+
+pytestmark = pytest.mark.skipif(
+    config.ENABLE_CUDASIM or not cuda.is_available(), reason="no CUDA GPU on this machine"
+)
+
+BATCHES = 32
+
+
+def std_error(batches: np.ndarray) -> np.ndarray:
+    return batches.std(axis=0, ddof=1) / math.sqrt(len(batches))
+
+
+def medium_and_scene():
+    axis = 0.05 + 0.1 * np.arange(6)
+    ext = np.random.default_rng(1).uniform(2.0, 20.0, (6, 6, 6))
+    medium = optical_medium(axis, axis, axis + 0.5, ext)
+    cams = [
+        Camera((0.3, 0.3, 3.0), (0.3, 0.3, 0.8), (0, 1, 0), fov=25.0, nrows=8, ncols=8),
+        Camera((1.6, 0.3, 2.5), (0.3, 0.3, 0.8), (0, 0, 1), fov=25.0, nrows=8, ncols=8),
+    ]
+    return medium, Scene(cams, Sun(30.0, 20.0), "open", 0.3)
+
+
+def test_same_photon_same_path_on_the_gpu():
+    import cloudct.mc.cuda_kernels as ck
+
+    medium, scene = medium_and_scene()
+    k = kernel_inputs(medium, scene)
+    residual = np.random.default_rng(2).normal(size=(2, 8, 8))
+    nbatch, per_batch, first, count = 4, 5000, 0, 5000
+    n = nbatch * count
+    path_sum, vertices = ck.device_zeros(n), ck.device_zeros(n, np.int64)
+    dummy, events = ck.device_zeros((1, 1, 1)), ck.device_zeros(nbatch, np.int64)
+    ck._launch(
+        ck.forward_residual_kernel, n, ck.THREADS_PER_BLOCK, ck.device_scene(k), k.periodic,
+        k.ground, 100, 0.95, 3, per_batch, first, count, nbatch,
+        (ck.to_device(residual), events, path_sum, vertices, dummy, dummy),
+    )
+    gpu_sum, gpu_vertices = ck.to_host(path_sum), ck.to_host(vertices)
+    host_dummy = np.zeros((1, 1, 1))
+    cpu = np.array([
+        trace_photon(
+            k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, 100, 0.95, 3,
+            (t // count) * per_batch + first + t % count, RESIDUAL, host_dummy, residual,
+            host_dummy, 0.0,
+        )
+        for t in range(n)
+    ])
+    same = cpu[:, 0] == gpu_vertices
+    assert same.mean() > 0.99, f"only {same.mean():.4f} of the paths have the same length"
+    np.testing.assert_allclose(
+        gpu_sum[same], cpu[same, 1], rtol=1e-9, atol=1e-12 * np.abs(cpu[:, 1]).max()
+    )
+
+
+@pytest.mark.parametrize("method, photons", [("forward", 400_000), ("backward", 256)])
+def test_gpu_images_agree_with_cpu(method, photons):
+    medium, scene = medium_and_scene()
+    kw = dict(photons=photons, batches=BATCHES, method=method, progress=False)
+    cpu, _ = render_batches(medium, scene, seed=1, backend="cpu", **kw)
+    gpu, info = render_batches(medium, scene, seed=2, backend="cuda", **kw)
+    assert info["backend"] == "cuda"
+    lit = cpu.mean(axis=0) > 0
+    assert_consistent(
+        gpu.mean(axis=0)[lit], std_error(gpu)[lit], cpu.mean(axis=0)[lit], BATCHES,
+        std_error(cpu)[lit],
+        label=f"{method} GPU vs CPU",
+    )
+
+
+def test_gpu_gradient_agrees_with_cpu():
+    medium, scene = medium_and_scene()
+    residual = np.random.default_rng(2).normal(size=(2, 8, 8))
+    kw = dict(photons=400_000, batches=BATCHES, progress=False)
+    cpu = score_function_gradient(medium, scene, residual, seed=1, backend="cpu", **kw)
+    gpu = score_function_gradient(medium, scene, residual, seed=2, backend="cuda", **kw)
+    assert gpu[2]["backend"] == "cuda"
+    assert_consistent(gpu[0], gpu[1], cpu[0], BATCHES, cpu[1], label="gradient GPU vs CPU")

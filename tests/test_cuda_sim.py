@@ -1,0 +1,290 @@
+"""The CUDA back end against the CPU path, on a machine without a GPU.
+
+1. CUDA simulator (``NUMBA_ENABLE_CUDASIM=1``, set in a subprocess before numba is imported
+   so that the rest of the suite stays on the normal CPU path). The simulated kernels
+   (:mod:`cloudct.mc.cuda_kernels`) run the same compiled ``@njit`` per-photon routines as
+   the CPU kernels, with the CPU's photon indexing and random streams. Expected agreement:
+
+   - per photon (RESIDUAL pass: path sum and vertex count; every pixel sample): **bitwise**,
+     since each photon draws the same stream and runs the same code;
+   - per-batch images and gradients with one thread per block, where the simulator runs the
+     threads one after the other, so every output element receives its photons' terms in the
+     CPU's order: **bitwise**;
+   - with 32 threads per block and with the GRADIENT pass re-ordered by path length (seed
+     paper Sec. 5.3), only the order of the additions into an element can differ: equal **to
+     float64 rounding** (rtol 1e-12, atol 1e-12 x the largest element); vertex counts exact.
+
+   The simulator runs the ``@njit`` routines as CPU code: it checks the kernels' indexing,
+   launches, passes and reductions, not the GPU compilation.
+2. GPU compilation without a GPU: each kernel, with every ``@njit`` routine it calls and the
+   atomic CUDA implementation of ``add_to``, is compiled to PTX for sm_90 by NVVM and
+   assembled by ptxas (from the ``cu12`` toolkit wheels of the ``test`` extra).
+3. Back-end choice in this process (no GPU): ``auto`` falls back to the CPU with a warning,
+   ``cuda`` raises.
+
+numba-cuda is part of the ``test`` extra: without it these tests fail rather than skip. On a
+machine with a GPU, ``tests/test_cuda_gpu.py`` runs the kernels for real.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cloudct.mc.render import render_batches
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SCENES = """
+import numpy as np
+from cloudct.mc.cameras import Camera
+from cloudct.mc.scene import Scene
+from cloudct.mc.sun import Sun
+from cloudct.medium import optical_medium
+
+axis = 0.05 + 0.1 * np.arange(4)
+ext = np.random.default_rng(1).uniform(2.0, 12.0, (4, 4, 4))
+ext[0] = 0.0
+medium = optical_medium(axis, axis, axis + 0.5, ext)
+cams = [Camera((0.2, 0.2, 3.0), (0.2, 0.2, 0.7), (0, 1, 0), fov=20.0, nrows=6, ncols=6),
+        Camera((1.5, 0.2, 2.5), (0.2, 0.2, 0.7), (0, 0, 1), fov=20.0, nrows=6, ncols=6)]
+scenes = {"open": Scene(cams, Sun(30.0, 20.0), "open", 0.3),
+          "periodic": Scene(cams[:1], Sun(20.0, 60.0), "periodic", None)}
+"""
+
+SIMULATOR_SCRIPT = SCENES + """
+import json
+from numba import config
+assert config.ENABLE_CUDASIM
+import cloudct.mc.cuda_kernels as ck
+from cloudct.mc.backend import resolve_backend
+from cloudct.mc.forward import RESIDUAL, trace_photon
+from cloudct.mc.backward import trace_pixel_sample
+from cloudct.mc.gradient import score_function_gradient
+from cloudct.mc.render import kernel_inputs, render_batches
+
+def compare(cpu, gpu):
+    cpu, gpu = np.asarray(cpu), np.asarray(gpu)
+    return {"bitwise": bool(np.array_equal(cpu, gpu)), "max_diff": float(np.abs(cpu - gpu).max()),
+            "scale": float(np.abs(cpu).max()), "cpu": cpu.tolist(), "gpu": gpu.tolist()}
+
+out = {"auto": resolve_backend("auto")}
+residual = np.random.default_rng(2).normal(size=(2, 6, 6))
+for tpb in (1, 32):
+    ck.THREADS_PER_BLOCK = tpb
+    for name, scene in scenes.items():
+        for method, n in (("forward", 256), ("backward", 8)):
+            runs = [render_batches(medium, scene, photons=n, batches=4, method=method,
+                                   progress=False, backend=b) for b in ("cpu", "cuda")]
+            case = compare(runs[0][0], runs[1][0])
+            case["events"] = [runs[0][1]["events"], runs[1][1]["events"]]
+            case["backend"] = runs[1][1]["backend"]
+            out[f"{method}/{name}/tpb{tpb}"] = case
+    for sort in (False, True):
+        ck.SORT_PATHS = sort
+        runs = [score_function_gradient(medium, scenes["open"], residual, photons=256,
+                                        batches=4, progress=False, backend=b)
+                for b in ("cpu", "cuda")]
+        case = compare(runs[0][0], runs[1][0])
+        case["events"] = [runs[0][2]["events"], runs[1][2]["events"]]
+        out[f"gradient/sort{int(sort)}/tpb{tpb}"] = case
+
+# per photon: the RESIDUAL pass kernel against trace_photon called on the CPU
+k = kernel_inputs(medium, scenes["open"])
+nbatch, per_batch, first, count = 3, 40, 5, 30
+path_sum = np.zeros(nbatch * count)
+vertices = np.zeros(nbatch * count, np.int64)
+dummy = np.zeros((1, 1, 1))
+events = np.zeros(nbatch, np.int64)
+ck.THREADS_PER_BLOCK = 32
+ck._launch(ck.forward_residual_kernel, nbatch * count, 32, ck.device_scene(k), k.periodic,
+           k.ground, 100, 0.95, 7, per_batch, first, count, nbatch,
+           (residual, events, path_sum, vertices, dummy, dummy))
+cpu_sum, cpu_vertices = [], []
+for t in range(nbatch * count):
+    index = (t // count) * per_batch + first + t % count
+    v, s = trace_photon(k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, 100,
+                        0.95, 7, index, RESIDUAL, dummy, residual, dummy, 0.0)
+    cpu_sum.append(s)
+    cpu_vertices.append(v)
+out["photon/path_sum"] = compare(cpu_sum, path_sum)
+out["photon/vertices"] = compare(cpu_vertices, vertices)
+print("RESULT " + json.dumps(out))
+"""
+
+PTX_SCRIPT = SCENES + """
+import json, os, subprocess, tempfile
+from types import SimpleNamespace
+import numba.cuda.dispatcher as dispatcher
+from numba import cuda
+from numba.cuda.typing.typeof import typeof
+
+CC = (9, 0)
+# numba-cuda compiles the @njit routines a kernel calls for the current device's compute
+# capability; there is no device here, so name one.
+assert hasattr(dispatcher, "get_current_device"), "numba-cuda internals changed"
+dispatcher.get_current_device = lambda: SimpleNamespace(compute_capability=CC)
+import cloudct.mc.cuda_kernels as ck
+from cloudct.mc.render import kernel_inputs
+
+k = kernel_inputs(medium, scenes["open"])
+scene = ck.DeviceScene(k.grid, k.bank, k.cams, k.copies, k.sun)
+scalars = (k.periodic, k.ground, 100, 0.95, 0, 10)
+images, events, d = np.zeros((4, 2, 6, 6)), np.zeros(4, np.int64), np.zeros((1, 1, 1))
+gradients, residual = np.zeros((4, 4, 4, 4)), np.zeros((2, 6, 6))
+path_sum, vertices = np.zeros(8), np.zeros(8, np.int64)
+cases = {
+    "forward_render_kernel": (scene, *scalars, 0, 2, (images, events, d, d)),
+    "forward_residual_kernel": (scene, *scalars, 0, 2, 4,
+                                (residual, events, path_sum, vertices, d, d)),
+    "forward_gradient_kernel": (scene, *scalars, 0, 2, (residual, gradients, path_sum,
+                                                        vertices, d)),
+    "backward_kernel": (scene, *scalars, 0, 2, (images, events)),
+}
+import nvidia.cuda_nvcc
+ptxas = os.path.join(list(nvidia.cuda_nvcc.__path__)[0], "bin", "ptxas")
+out = {}
+with tempfile.TemporaryDirectory() as tmp:
+    for name, args in cases.items():
+        ptx, _ = cuda.compile_ptx(getattr(ck, name).py_func, tuple(typeof(a) for a in args),
+                                  cc=CC)
+        path = os.path.join(tmp, name + ".ptx")
+        with open(path, "w") as f:
+            f.write(ptx)
+        asm = subprocess.run([ptxas, "-arch=sm_90", "-v", path, "-o", path + ".cubin"],
+                             capture_output=True, text=True)
+        out[name] = {
+            "atomics": sorted({w for w in ptx.split() if w.startswith("atom.")}),
+            "ptxas_rc": asm.returncode,
+            "ptxas": [l for l in asm.stderr.splitlines() if "registers" in l or "rror" in l],
+        }
+print("RESULT " + json.dumps(out))
+"""
+
+
+def require_numba_cuda() -> None:
+    if importlib.util.find_spec("numba_cuda") is None:
+        pytest.fail(
+            "numba-cuda is not installed; the CUDA back end cannot be tested. Install the test "
+            "extra: pip install -e '.[test]'",
+            pytrace=False,
+        )
+
+
+def run_script(script: str, simulator: bool, timeout: float = 600.0) -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+    env.pop("NUMBA_ENABLE_CUDASIM", None)
+    if simulator:
+        env["NUMBA_ENABLE_CUDASIM"] = "1"
+    proc = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=timeout,
+        cwd=ROOT,
+    )
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
+    assert proc.returncode == 0 and lines, (
+        f"subprocess failed (rc {proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-6000:]}"
+    )
+    return json.loads(lines[-1][len("RESULT "):])
+
+
+@pytest.fixture(scope="module")
+def simulated() -> dict:
+    require_numba_cuda()
+    return run_script(SIMULATOR_SCRIPT, simulator=True)
+
+
+def test_simulator_is_the_cuda_backend(simulated):
+    assert simulated["auto"] == "cuda"
+    renders = [v for key, v in simulated.items() if key.startswith(("forward/", "backward/"))]
+    assert renders and all(v["backend"] == "cuda" for v in renders)
+
+
+@pytest.mark.parametrize("key", ["photon/path_sum", "photon/vertices"])
+def test_same_photon_same_path(simulated, key):
+    """Each photon index draws the same stream on both back ends: bitwise equal."""
+    case = simulated[key]
+    assert case["bitwise"], f"{key}: max difference {case['max_diff']:.3g}"
+    assert case["scale"] > 0.0
+
+
+@pytest.mark.parametrize(
+    "key",
+    [f"{m}/{s}/tpb1" for m in ("forward", "backward") for s in ("open", "periodic")]
+    + ["gradient/sort0/tpb1"],
+)
+def test_sequential_threads_match_cpu_bitwise(simulated, key):
+    """One thread per block: the CPU's summation order, so bitwise equal batches."""
+    case = simulated[key]
+    assert case["bitwise"], f"{key}: max difference {case['max_diff']:.3g} of {case['scale']:.3g}"
+    assert case["scale"] > 0.0
+    assert case["events"][0] == case["events"][1] > 0
+
+
+@pytest.mark.parametrize(
+    "key",
+    [f"{m}/{s}/tpb32" for m in ("forward", "backward") for s in ("open", "periodic")]
+    + ["gradient/sort1/tpb1", "gradient/sort0/tpb32", "gradient/sort1/tpb32"],
+)
+def test_reordered_threads_match_cpu_to_rounding(simulated, key):
+    """Blocks of 32 threads, path-length order: summation order only, float64 rounding."""
+    case = simulated[key]
+    cpu, gpu = np.array(case["cpu"]), np.array(case["gpu"])
+    assert case["scale"] > 0.0
+    np.testing.assert_allclose(gpu, cpu, rtol=1e-12, atol=1e-12 * case["scale"], err_msg=key)
+    assert case["events"][0] == case["events"][1] > 0
+
+
+def test_kernels_compile_for_a_gpu():
+    """Every kernel compiles to PTX (sm_90) and assembles, with atomic float64 additions
+    where it writes shared images or gradients (``add_to``'s CUDA implementation)."""
+    require_numba_cuda()
+    if importlib.util.find_spec("nvidia.cuda_nvcc") is None:
+        pytest.fail("NVVM/ptxas not found: install numba-cuda[cu12] (the test extra)",
+                    pytrace=False)
+    result = run_script(PTX_SCRIPT, simulator=False)
+    for name, info in result.items():
+        assert info["ptxas_rc"] == 0, f"{name}: ptxas failed: {info['ptxas']}"
+    for name in ("forward_render_kernel", "forward_gradient_kernel", "backward_kernel"):
+        assert "atom.global.add.f64" in result[name]["atomics"], result[name]
+    assert "atom.global.add.f64" not in result["forward_residual_kernel"]["atomics"]
+
+
+def test_auto_backend_falls_back_to_cpu_with_a_warning():
+    """No GPU in this process: ``auto`` warns once and renders on the CPU; ``cuda`` raises."""
+    require_numba_cuda()
+    from numba import cuda
+
+    if cuda.is_available():
+        pytest.skip("a GPU (or the simulator) is available in this process")
+    ns: dict = {}
+    exec(SCENES, ns)
+    kw = dict(photons=64, batches=2, progress=False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        auto, info = render_batches(ns["medium"], ns["scenes"]["open"], backend="auto", **kw)
+    assert info["backend"] == "cpu"
+    assert [str(w.message) for w in caught if "backend='auto'" in str(w.message)]
+    cpu, _ = render_batches(ns["medium"], ns["scenes"]["open"], backend="cpu", **kw)
+    assert np.array_equal(auto, cpu)
+    with pytest.raises(RuntimeError, match="backend='cuda'"):
+        render_batches(ns["medium"], ns["scenes"]["open"], backend="cuda", **kw)
+    with pytest.raises(ValueError, match="backend must be one of"):
+        render_batches(ns["medium"], ns["scenes"]["open"], backend="gpu", **kw)
+
+
+def test_sort_by_path_length_is_stable():
+    from cloudct.mc.backend import sort_by_path_length
+
+    lengths = np.array([3, 1, 2, 1, 3, 0, 2])
+    order = sort_by_path_length(lengths)
+    assert order.tolist() == [5, 1, 3, 2, 6, 0, 4]
+    assert np.all(np.diff(lengths[order]) >= 0)
