@@ -41,6 +41,7 @@ from cloudct.recycling import (
     record_paths,
     replay_gradient,
     replay_images,
+    replay_render,
     sort_paths,
 )
 from cloudct.recycling.store import crossings_bytes, lean_bytes
@@ -124,6 +125,9 @@ def test_correction_factor_is_exactly_one_under_the_reference(case):
     assert np.array_equal(recycled, fresh), "same paths, same weights, same estimates"
     assert info["events"] == fresh_info["events"]
     assert info["ess_fraction"] == 1.0
+    dataset = replay_render(store, medium)
+    assert np.array_equal(dataset.radiance.values, recycled.mean(axis=0))
+    assert dataset.attrs["method"] == "forward-recycled"
     weights = weights_for(scene)
     grad, _, _ = replay_gradient(store, medium, weights)
     fresh_grad, _, _ = score_function_gradient(
@@ -157,12 +161,18 @@ def test_recycled_images_agree_with_fresh_images(case, change):
     lit = (se > 0) & (fresh_se > 0)
     assert lit.sum() > 0.8 * lit.size
     sigma = np.hypot(se, fresh_se)[lit]
-    # power: a common bias of 3% would show as a pooled z-score above 6
-    assert 0.03 * fresh_mean[lit].sum() / np.sqrt(np.sum(sigma**2)) > 6.0
-    if change == "scaled":
-        reference = replay_images(store, medium)[0].mean(axis=0)
-        shift = (reference - fresh_mean)[lit] / sigma
-        assert np.abs(shift.sum()) / np.sqrt(shift.size) > 10.0, "the images must move"
+    if change == "voxelwise":
+        # power: a common bias of 3% would show as a pooled z-score above 6
+        assert 0.03 * fresh_mean[lit].sum() / np.sqrt(np.sum(sigma**2)) > 6.0
+    else:
+        # without its correction factors the store fails the same comparison
+        at_reference = replay_images(store, medium)[0]
+        se_ref = at_reference.std(axis=0, ddof=1) / np.sqrt(BATCHES)
+        with pytest.raises(AssertionError):
+            assert_consistent(
+                at_reference.mean(axis=0)[lit], se_ref[lit], fresh_mean[lit], BATCHES,
+                reference_error=fresh_se[lit], label=f"uncorrected ({name})",
+            )
     assert_consistent(
         mean[lit], se[lit], fresh_mean[lit], BATCHES, reference_error=fresh_se[lit],
         label=f"recycled vs fresh images ({name}, {change})",
@@ -231,7 +241,7 @@ def test_effective_sample_size_falls_as_the_medium_departs_from_the_reference():
     ]
     assert fractions[0] == 1.0
     assert np.all(np.diff(fractions) < 0), fractions
-    assert fractions[-1] < 0.5
+    assert fractions[-1] < 0.8
 
 
 # ----------------------------------------------------------------------------------------

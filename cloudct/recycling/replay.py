@@ -17,27 +17,27 @@ wherever the reference's is (paths cannot visit where M_ref has no extinction).
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import xarray as xr
 
 from cloudct.mc.forward import GRADIENT, RENDER
 from cloudct.mc.gradient import check_residual
-from cloudct.mc.render import KernelInputs, images_dataset, kernel_inputs, run_in_rounds
+from cloudct.mc.render import KernelInputs, images_dataset, kernel_inputs
+from cloudct.medium import cell_edges
 from cloudct.recycling.kernels import (
     flat_total_extinction,
     log_ratio_batches,
     replay_gradient_batches,
     replay_render_batches,
 )
-from cloudct.recycling.store import PathStore, check_not_empty, check_same_grid
+from cloudct.recycling.store import PathStore, check_not_empty, check_same_grid, run_batches
 
 
 def _inputs(store: PathStore, medium: xr.Dataset) -> tuple[KernelInputs, np.ndarray]:
     check_not_empty(store)
+    check_same_grid(store, cell_edges(medium))
     k = kernel_inputs(medium, store.scene)
-    check_same_grid(store, k.edges)
     return k, flat_total_extinction(k.grid)
 
 
@@ -92,12 +92,7 @@ def _replay(
                 store.max_records,
             )
 
-    if progress:
-        wall = run_in_rounds(run, store.per_batch, b, progress, unit="path", desc=desc)
-    else:  # one call: each call of a parallel kernel has a fixed cost
-        start = time.perf_counter()
-        run(0, store.per_batch)
-        wall = time.perf_counter() - start
+    wall = run_batches(run, store.per_batch, b, progress, unit="path", desc=desc)
     ess = effective_sample_size(log_r)
     info = {
         "photons": store.paths,

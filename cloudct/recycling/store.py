@@ -31,7 +31,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 import xarray as xr
@@ -130,7 +132,7 @@ class PathStore:
         """Store bytes per stored scattering (or ground) event."""
         return self.nbytes / max(self.events, 1)
 
-    @property
+    @cached_property
     def max_records(self) -> int:
         """Records of the longest path."""
         return int(np.max(np.diff(self.arrays.path_start))) if self.paths else 0
@@ -213,7 +215,7 @@ def record_paths(
 
     # pass 1: records per path, CSR offsets
     counts = np.zeros(npaths, dtype=np.int64)
-    run_in_rounds(
+    run_batches(
         lambda first, last: count_records(*run_args, first, last, counts),
         per_batch, batches, progress, unit="photon", desc="count paths",
     )
@@ -232,7 +234,7 @@ def record_paths(
         kind=np.empty(nrec, dtype=np.int8),
         voxel=np.empty(nrec, dtype=vdtype),
     )
-    run_in_rounds(
+    run_batches(
         lambda first, last: write_records(*run_args, first, last, path_start, record),
         per_batch, batches, progress, unit="photon", desc="record paths",
     )
@@ -293,6 +295,20 @@ def record_paths(
         store = sort_paths(store)
     store.info["record_time"] = time.perf_counter() - start_time
     return store
+
+
+def run_batches(
+    run: Callable[[int, int], None], per_batch: int, batches: int, progress: bool | None,
+    unit: str, desc: str,
+) -> float:
+    """``run(0, per_batch)`` in one call, or in rounds with a progress bar when ``progress``
+    (each call of a parallel kernel has a fixed cost, large on a loaded machine); returns
+    the wall time."""
+    if progress:
+        return run_in_rounds(run, per_batch, batches, progress, unit=unit, desc=desc)
+    start = time.perf_counter()
+    run(0, per_batch)
+    return time.perf_counter() - start
 
 
 def _gather_ranges(starts: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
