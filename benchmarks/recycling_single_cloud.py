@@ -184,10 +184,10 @@ def main() -> None:
     result["iteration"] = iteration
     write(result, args.output)
 
-    # -- memory ---------------------------------------------------------------------------
+    # -- memory (stores recorded under the true cloud) ---------------------------------
     memory = {}
     for storage in ("crossings", "lean"):
-        s = stores[storage][0]
+        s = record_paths(truth, scene, photons=n, seed=25, batches=nb, storage=storage)
         memory[storage] = {
             "bytes_per_event": s.bytes_per_event,
             "bytes_per_path": s.nbytes / s.paths,
@@ -199,7 +199,7 @@ def main() -> None:
         }
     if args.million:
         store, wall, cpu = timed(
-            lambda: record_paths(reference, scene, photons=1_000_000, seed=30, batches=nb,
+            lambda: record_paths(truth, scene, photons=1_000_000, seed=30, batches=nb,
                                  storage="crossings")
         )
         memory["crossings_1e6_measured"] = {
