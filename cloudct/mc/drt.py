@@ -141,10 +141,12 @@ from cloudct.mc.sun import sun_arrays
 from cloudct.mc.traversal import (
     BOTTOM,
     INF,
+    INSIDE,
     LEFT,
-    _distance_to_face,
+    cross_face,
     locate_point,
     march,
+    next_face,
     optical_depth_to_exit,
     ray_box_entry,
     wrap_into_box,
@@ -175,12 +177,6 @@ def sample_transmittance(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic, sta
 
     Returns ``(C, qx, qy, qz, qix, qiy, qiz, state)``; C = 0 (no point) for an empty chord.
     """
-    xe = grid.x_edges
-    ye = grid.y_edges
-    ze = grid.z_edges
-    nx = xe.size - 1
-    ny = ye.size - 1
-    nz = ze.size - 1
     trans = 1.0
     total = 0.0
     rx = ry = rz = 0.0
@@ -188,10 +184,7 @@ def sample_transmittance(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic, sta
     rbeta = 0.0
     rlen = 0.0
     while True:
-        tx = _distance_to_face(xe, ix, px, ux)
-        ty = _distance_to_face(ye, iy, py, uy)
-        tz = _distance_to_face(ze, iz, pz, uz)
-        t = min(tx, min(ty, tz))
+        t, axis = next_face(grid, px, py, pz, ux, uy, uz, ix, iy, iz)
         beta = total_extinction(grid, ix, iy, iz)
         x = beta * t
         area = trans * t * (-math.expm1(-x) / x) if x > 0.0 else trans * t
@@ -204,55 +197,11 @@ def sample_transmittance(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic, sta
                 rbeta = beta
                 rlen = t
         trans *= math.exp(-x)
-        px += t * ux
-        py += t * uy
-        pz += t * uz
-        # voxel stepping and boundaries exactly as in traversal.march
-        if t == tx:
-            if ux > 0.0:
-                ix += 1
-                px = xe[ix]
-                if ix == nx:
-                    if not periodic:
-                        break
-                    ix = 0
-                    px = xe[0]
-            else:
-                px = xe[ix]
-                ix -= 1
-                if ix < 0:
-                    if not periodic:
-                        break
-                    ix = nx - 1
-                    px = xe[nx]
-        elif t == ty:
-            if uy > 0.0:
-                iy += 1
-                py = ye[iy]
-                if iy == ny:
-                    if not periodic:
-                        break
-                    iy = 0
-                    py = ye[0]
-            else:
-                py = ye[iy]
-                iy -= 1
-                if iy < 0:
-                    if not periodic:
-                        break
-                    iy = ny - 1
-                    py = ye[ny]
-        else:
-            if uz > 0.0:
-                iz += 1
-                pz = ze[iz]
-                if iz == nz:
-                    break
-            else:
-                pz = ze[iz]
-                iz -= 1
-                if iz < 0:
-                    break
+        status, px, py, pz, ix, iy, iz = cross_face(
+            grid, px + t * ux, py + t * uy, pz + t * uz, ux, uy, uz, ix, iy, iz, axis, periodic
+        )
+        if status != INSIDE:
+            break
     if rix < 0:
         return 0.0, 0.0, 0.0, 0.0, 0, 0, 0, state
     u, state = uniform(state)

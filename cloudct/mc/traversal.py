@@ -88,6 +88,88 @@ def _distance_to_face(edges, i, p, d):
     return INF
 
 
+#: Outcome of crossing a voxel face: still inside the medium.
+INSIDE = -1
+
+
+@njit(cache=True, inline="always")
+def next_face(grid, px, py, pz, ux, uy, uz, ix, iy, iz):
+    """Distance along (ux, uy, uz) to the next face of voxel (ix, iy, iz) and the axis
+    (0, 1, 2 for x, y, z) of that face."""
+    tx = _distance_to_face(grid.x_edges, ix, px, ux)
+    ty = _distance_to_face(grid.y_edges, iy, py, uy)
+    tz = _distance_to_face(grid.z_edges, iz, pz, uz)
+    t = min(tx, min(ty, tz))
+    if t == tx:
+        return t, 0
+    if t == ty:
+        return t, 1
+    return t, 2
+
+
+@njit(cache=True, inline="always")
+def cross_face(grid, px, py, pz, ux, uy, uz, ix, iy, iz, axis, periodic):
+    """Step from a point on the ``axis`` face of voxel (ix, iy, iz) into the next voxel.
+
+    The crossed coordinate is set exactly to the face. A ray leaving through a side face
+    re-enters through the opposite one with periodic boundaries. Returns
+    ``(status, px, py, pz, ix, iy, iz)``: status :data:`INSIDE`, or :data:`LEFT` /
+    :data:`BOTTOM` with the last voxel inside and the point on the face it left through.
+    """
+    xe = grid.x_edges
+    ye = grid.y_edges
+    ze = grid.z_edges
+    if axis == 0:
+        nx = xe.size - 1
+        if ux > 0.0:
+            ix += 1
+            px = xe[ix]
+            if ix == nx:
+                if not periodic:
+                    return LEFT, px, py, pz, ix - 1, iy, iz
+                ix = 0
+                px = xe[0]
+        else:
+            px = xe[ix]
+            ix -= 1
+            if ix < 0:
+                if not periodic:
+                    return LEFT, px, py, pz, 0, iy, iz
+                ix = nx - 1
+                px = xe[nx]
+    elif axis == 1:
+        ny = ye.size - 1
+        if uy > 0.0:
+            iy += 1
+            py = ye[iy]
+            if iy == ny:
+                if not periodic:
+                    return LEFT, px, py, pz, ix, iy - 1, iz
+                iy = 0
+                py = ye[0]
+        else:
+            py = ye[iy]
+            iy -= 1
+            if iy < 0:
+                if not periodic:
+                    return LEFT, px, py, pz, ix, 0, iz
+                iy = ny - 1
+                py = ye[ny]
+    else:
+        nz = ze.size - 1
+        if uz > 0.0:
+            iz += 1
+            pz = ze[iz]
+            if iz == nz:
+                return LEFT, px, py, pz, ix, iy, nz - 1
+        else:
+            pz = ze[iz]
+            iz -= 1
+            if iz < 0:
+                return BOTTOM, px, py, pz, ix, iy, 0
+    return INSIDE, px, py, pz, ix, iy, iz
+
+
 @njit(cache=True)
 def march(
     grid, px, py, pz, ux, uy, uz, ix, iy, iz, tau_target, periodic, lengths=None,
@@ -107,19 +189,12 @@ def march(
     :data:`LEFT` or :data:`BOTTOM`; the position and voxel are where the walk ended (for
     LEFT and BOTTOM, on the face it left through) and ``tau`` the optical depth travelled.
     """
-    xe = grid.x_edges
-    ye = grid.y_edges
-    ze = grid.z_edges
-    nx = xe.size - 1
-    ny = ye.size - 1
-    nz = ze.size - 1
+    ny = grid.y_edges.size - 1
+    nz = grid.z_edges.size - 1
     tau = 0.0
     walked = 0.0
     while True:
-        tx = _distance_to_face(xe, ix, px, ux)
-        ty = _distance_to_face(ye, iy, py, uy)
-        tz = _distance_to_face(ze, iz, pz, uz)
-        t = min(tx, min(ty, tz))
+        t, axis = next_face(grid, px, py, pz, ux, uy, uz, ix, iy, iz)
         beta = total_extinction(grid, ix, iy, iz)
         dtau = beta * t
         piece = t  # the length walked in this voxel
@@ -149,54 +224,11 @@ def march(
             )
         tau += dtau
         walked += t
-        px += t * ux
-        py += t * uy
-        pz += t * uz
-        if t == tx:
-            if ux > 0.0:
-                ix += 1
-                px = xe[ix]
-                if ix == nx:
-                    if not periodic:
-                        return LEFT, px, py, pz, ix - 1, iy, iz, tau
-                    ix = 0
-                    px = xe[0]
-            else:
-                px = xe[ix]
-                ix -= 1
-                if ix < 0:
-                    if not periodic:
-                        return LEFT, px, py, pz, 0, iy, iz, tau
-                    ix = nx - 1
-                    px = xe[nx]
-        elif t == ty:
-            if uy > 0.0:
-                iy += 1
-                py = ye[iy]
-                if iy == ny:
-                    if not periodic:
-                        return LEFT, px, py, pz, ix, iy - 1, iz, tau
-                    iy = 0
-                    py = ye[0]
-            else:
-                py = ye[iy]
-                iy -= 1
-                if iy < 0:
-                    if not periodic:
-                        return LEFT, px, py, pz, ix, 0, iz, tau
-                    iy = ny - 1
-                    py = ye[ny]
-        else:
-            if uz > 0.0:
-                iz += 1
-                pz = ze[iz]
-                if iz == nz:
-                    return LEFT, px, py, pz, ix, iy, nz - 1, tau
-            else:
-                pz = ze[iz]
-                iz -= 1
-                if iz < 0:
-                    return BOTTOM, px, py, pz, ix, iy, 0, tau
+        status, px, py, pz, ix, iy, iz = cross_face(
+            grid, px + t * ux, py + t * uy, pz + t * uz, ux, uy, uz, ix, iy, iz, axis, periodic
+        )
+        if status != INSIDE:
+            return status, px, py, pz, ix, iy, iz, tau
 
 
 @njit(cache=True)
