@@ -216,14 +216,17 @@ def main() -> None:
     # carving gives), from 0.7 x the true cloud, driven by the recycled gradients
     mask = cloud > 0
     start = 0.7 * cloud
-    result["ess"] = {"policy": "FixedPeriod (no resampling), then AdaptiveESS(0.5, 50)",
-                     "start": "0.7 x truth", "optimizer": "adam", "trajectories": {}}
-    runs = [(step, "fixed") for step in args.adam_steps] + [(args.adam_steps[0], "adaptive")]
+    result["ess"] = {"start": "0.7 x truth", "optimizer": "adam", "trajectories": {}}
+    policies = {
+        "fixed": FixedPeriod(args.iterations + 1),
+        "adaptive_ess_0.5": AdaptiveESS(min_fraction=0.5, max_period=50),
+        "adaptive_ess_0.5_max_ratio_20": AdaptiveESS(0.5, max_period=50, max_ratio=20.0),
+    }
+    runs = [(step, "fixed") for step in args.adam_steps] + [
+        (args.adam_steps[0], kind) for kind in policies if kind != "fixed"
+    ]
     for step, kind in runs:
-        policy = (
-            FixedPeriod(args.iterations + 1) if kind == "fixed"
-            else AdaptiveESS(min_fraction=0.5, max_period=50)
-        )
+        policy = policies[kind]
         recycler = Recycler(scene, photons=n, batches=nb, policy=policy, seed=40)
         optimizer = Adam(step=step)
         beta = start.copy()
@@ -239,15 +242,15 @@ def main() -> None:
                 "mean_relative_change_from_reference": float(
                     np.mean(np.abs(beta[mask] - start[mask]) / start[mask])
                 ),
-                "wall_s": ev.info["wall_time"],
+                "wall_s": ev.info["wall_time"], "checked": ev.info["checked"],
             })
             print(json.dumps({"adam_step": step, "policy": kind, **trajectory[-1]}), flush=True)
             beta = optimizer.update(beta, ev.gradient, mask)
-        key = f"adam_{step}" if kind == "fixed" else f"adam_{step}_adaptive_ess_0.5"
+        key = f"adam_{step}_{kind}"
         result["ess"]["trajectories"][key] = trajectory
-        if kind == "adaptive":
+        if kind != "fixed":
             total = sum(row["wall_s"] for row in trajectory)
-            result["ess"]["adaptive_summary"] = {
+            result["ess"][f"summary_{key}"] = {
                 "resampled_at": [row["iteration"] for row in trajectory if row["resampled"]],
                 "total_wall_s": total,
                 "fresh_equivalent_wall_s": args.iterations * iteration["fresh"]["wall_min_s"],

@@ -357,7 +357,8 @@ def test_recycler_adaptive_policy_resamples_on_low_ess_or_max_period():
     for factor in (1.0, 1.0, 1.6, 1.6, 1.6, 1.6):
         reasons.append(recycler.evaluate(scaled(medium, factor)).info["reasons"]["images"])
     assert reasons == ["initial", None, "ess", None, None, "max_period"]
-    assert recycler.log[2]["ess_checked"]["images"] < 0.8
+    assert recycler.log[2]["checked"]["images"]["ess_fraction"] < 0.8
+    assert recycler.log[1]["checked"]["images"] == {"ess_fraction": 1.0, "max_ratio": 1.0}
     # the residual function receives the recycled images
     seen = {}
 
@@ -368,3 +369,13 @@ def test_recycler_adaptive_policy_resamples_on_low_ess_or_max_period():
     ev = recycler.evaluate(scaled(medium, 1.6), residual=residual)
     assert np.array_equal(seen["radiance"], ev.images.radiance.values)
     assert ev.info["reasons"]["gradient"] == "initial"
+    # a cap on the largest correction factor resamples before the ESS falls that low
+    capped = Recycler(
+        scene, photons=3_200, batches=BATCHES, seed=1,
+        policy=AdaptiveESS(0.1, max_period=50, max_ratio=1.5),
+    )
+    reasons = [capped.evaluate(scaled(medium, f)).info["reasons"]["images"] for f in (1, 1.3)]
+    assert reasons == ["initial", "max_ratio"]
+    assert capped.log[1]["checked"]["images"]["ess_fraction"] > 0.1
+    with pytest.raises(ValueError, match="max_ratio"):
+        AdaptiveESS(max_ratio=0.5)

@@ -51,10 +51,13 @@ def score_function_gradient(
     rr_survival: float = 0.95,
     progress: bool | None = None,
     backend: str = "cpu",
+    client=None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """sum_d residual_d dI_d / d beta_cloud per voxel by the path score function.
 
     ``backend``: ``"cpu"``, ``"cuda"`` or ``"auto"`` (:mod:`cloudct.mc.backend`).
+    ``client``: a Dask client, address or executor to trace the batches on its workers
+    (bitwise the same result, see :mod:`cloudct.distributed`); None: this process.
 
     Returns ``(mean, std_error, info)`` with arrays over (x, y, z) and ``info`` holding the
     photon count, path vertices and wall time.
@@ -64,6 +67,18 @@ def score_function_gradient(
     residual = check_residual(residual, scene)
     k = kernel_inputs(medium, scene)
     per_batch = math.ceil(int(photons) / batches)
+    if client is not None:
+        from cloudct.distributed.core import gradient_batch_means
+
+        batch_means, info = gradient_batch_means(
+            client, k, residual, seed=seed, per_batch=per_batch, batches=batches,
+            rr_depth=rr_depth, rr_survival=rr_survival, backend=backend, progress=progress,
+        )
+        return (
+            batch_means.mean(axis=0),
+            batch_means.std(axis=0, ddof=1) / math.sqrt(batches),
+            info,
+        )
     gradients = np.zeros((batches, *k.grid.extinction.shape[1:]))
     no_images = np.zeros((batches, 1, 1, 1))
     events = np.zeros(batches, dtype=np.int64)

@@ -50,6 +50,7 @@ def render(
     rr_survival: float = 0.95,
     progress: bool | None = None,
     backend: str = "cpu",
+    client=None,
 ) -> xr.Dataset:
     """Images of ``medium`` seen by the cameras of ``scene``.
 
@@ -76,10 +77,15 @@ def render(
     backend
         ``"cpu"``, ``"cuda"`` or ``"auto"`` (CUDA where a GPU is available, else the CPU
         with a warning); see :mod:`cloudct.mc.backend`. Same seed, same random streams.
+    client
+        A Dask client, scheduler address or :class:`cloudct.distributed.DaskExecutor`:
+        the batches are traced on its workers (``backend`` resolved there), with bitwise
+        the same result (see :mod:`cloudct.distributed`). None: this process.
     """
     batch_means, info = render_batches(
         medium, scene, photons=photons, method=method, seed=seed, batches=batches,
         rr_depth=rr_depth, rr_survival=rr_survival, progress=progress, backend=backend,
+        client=client,
     )
     radiance = batch_means.mean(axis=0)
     std_error = batch_means.std(axis=0, ddof=1) / math.sqrt(batches)
@@ -98,6 +104,7 @@ def render_batches(
     rr_survival: float = 0.95,
     progress: bool | None = None,
     backend: str = "cpu",
+    client=None,
 ) -> tuple[np.ndarray, dict]:
     """The images of each independent batch, float64[batches, view, row, col], and the run's
     attributes; :func:`render` averages them. Arguments as for :func:`render`."""
@@ -111,6 +118,13 @@ def render_batches(
         raise ValueError("rr_survival must be in (0, 1] and rr_depth >= 1")
     k = kernel_inputs(medium, scene)
     per_batch = math.ceil(int(photons) / batches)
+    if client is not None:
+        from cloudct.distributed.core import render_batch_means
+
+        return render_batch_means(
+            client, k, method=method, seed=seed, per_batch=per_batch, batches=batches,
+            rr_depth=rr_depth, rr_survival=rr_survival, backend=backend, progress=progress,
+        )
     images = np.zeros((batches, len(scene.cameras), k.cams.nrows, k.cams.ncols))
     events = np.zeros(batches, dtype=np.int64)
     no_residual = np.zeros((1, 1, 1))
@@ -281,19 +295,35 @@ def _cli_render(args: argparse.Namespace) -> int:
     output = Path(args.output)
     if output.exists() and not args.overwrite:
         raise FileExistsError(f"{output} exists (use --overwrite)")
-    # compile (or load from the numba cache) first, so that the reported rate is the render's
-    render(medium, scene, photons=2, method=args.method, batches=2, progress=False)
-    images = render(
-        medium, scene, photons=args.photons, method=args.method, seed=args.seed,
-        batches=args.batches, progress=None,
-    )
+    client = None
+    if args.scheduler is not None or args.workers is not None:
+        from cloudct.distributed.core import close_client, connect
+
+        client = connect(args.scheduler, args.workers, backend=args.backend)
+    try:
+        # compile (or load from the numba cache) first, so that the reported rate is the
+        # render's
+        render(medium, scene, photons=2, method=args.method, batches=2, progress=False,
+               backend=args.backend, client=client)
+        images = render(
+            medium, scene, photons=args.photons, method=args.method, seed=args.seed,
+            batches=args.batches, progress=None, backend=args.backend, client=client,
+        )
+    finally:
+        if client is not None:
+            close_client(client)
     save_images(images, output, overwrite=args.overwrite)
     previews = save_previews(images, args.png or output.with_suffix(""))
     rate = images.attrs["photons"] / images.attrs["wall_time"]
+    where = ""
+    if "workers" in images.attrs:
+        where = (f", {images.attrs['workers']} workers, "
+                 f"{images.attrs['bytes_to_workers'] / 2**20:.3g} MiB out, "
+                 f"{images.attrs['bytes_from_workers'] / 2**20:.3g} MiB back")
     print(
         f"wrote {output} and {len(previews)} PNG previews in {previews[0].parent} "
         f"({images.attrs['photons']} {'photons' if args.method == 'forward' else 'samples/px'}, "
-        f"{images.attrs['wall_time']:.1f} s, {rate:.3g}/s)"
+        f"{images.attrs['wall_time']:.1f} s, {rate:.3g}/s{where})"
     )
     return 0
 
@@ -309,6 +339,19 @@ def _cli_scene(args: argparse.Namespace) -> int:
     scene.to_dataset().to_netcdf(output)
     print(f"wrote {output} ({len(scene.cameras)} cameras)")
     return 0
+
+
+def add_distributed_options(p: argparse.ArgumentParser) -> None:
+    """``--backend``, ``--workers`` and ``--scheduler`` (see docs/distributed.md)."""
+    p.add_argument("--backend", choices=("cpu", "cuda", "auto"), default="cpu",
+                   help="compute back end (on the workers, with --workers/--scheduler)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, metavar="N",
+                       help="trace on a local Dask cluster of N worker processes (one per "
+                       "GPU with --backend cuda); needs cloudct[distributed]")
+    where.add_argument("--scheduler", metavar="ADDRESS",
+                       help="trace on the Dask cluster of this scheduler (tcp://host:port or "
+                       "a scheduler file)")
 
 
 def register_cli(subparsers: argparse._SubParsersAction) -> None:
@@ -329,6 +372,7 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--batches", type=int, default=32)
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    add_distributed_options(p)
     p.set_defaults(func=_cli_render)
 
     s = subparsers.add_parser(

@@ -58,7 +58,7 @@ class Evaluation(NamedTuple):
     residual: np.ndarray | None  # the pixel weights the gradient used (None: no gradient)
     gradient: np.ndarray | None  # sum_d residual_d dI_d / d beta_cloud over (x, y, z)
     gradient_std_error: np.ndarray | None
-    info: dict  # iteration, resampled, reasons, ess fractions, ages, times, memory
+    info: dict  # iteration, resampled, reasons, ESS fractions, ages, times, memory
 
 
 @dataclass
@@ -206,19 +206,20 @@ class Recycler:
                 check_same_grid(slot.store, edges)
         needed = ("images",) if residual is None else STORES
         reasons: dict[str, str | None] = {}
-        checked_ess: dict[str, float] = {}
+        checked: dict[str, dict] = {}
         record_time = 0.0
         for name in needed:
             slot = self._slots[name]
             if slot.store is None:
                 reason = "initial"
             else:
-                ess = None
+                ess = max_log_r = None
                 if self.policy.uses_ess:
                     log_r = correction_log_weights(slot.store, medium)
                     ess = effective_sample_size(log_r) / slot.store.paths
-                    checked_ess[name] = ess
-                reason = self.policy.resample_reason(slot.age, ess)
+                    max_log_r = float(log_r.max())
+                    checked[name] = {"ess_fraction": ess, "max_ratio": math.exp(max_log_r)}
+                reason = self.policy.resample_reason(slot.age, ess, max_log_r)
             if reason is not None:
                 t0 = time.perf_counter()
                 self.resample(medium, (name,))
@@ -257,7 +258,7 @@ class Recycler:
             "reasons": reasons,
             "ess_images": image_info["ess_fraction"],
             "ess_gradient": gradient_info.get("ess_fraction"),
-            "ess_checked": checked_ess,
+            "checked": checked,
             "age": {name: self._slots[name].age for name in needed},
             "record_time": record_time,
             "images_time": image_info["wall_time"],

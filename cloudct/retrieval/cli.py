@@ -8,6 +8,7 @@ from pathlib import Path
 
 import xarray as xr
 
+from cloudct.mc.render import add_distributed_options
 from cloudct.medium import load_medium
 from cloudct.retrieval.loop import Retrieval, RetrievalConfig
 from cloudct.retrieval.report import write_report
@@ -46,13 +47,25 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
     truth = load_medium(args.truth) if args.truth else None
     initial = _initial_medium(measurements, args.init, args.medium)
     checkpoint = Path(args.checkpoint or output.with_suffix(".checkpoint.nc"))
-    if args.resume:
-        run = Retrieval.resume(checkpoint, measurements, initial, truth=truth,
-                               iterations=args.iterations)
-    else:
+    if not args.resume:
         _refuse_overwrite(checkpoint, args.overwrite)
-        run = Retrieval(measurements, initial, _config(args), truth=truth)
-    result = run.run(checkpoint=checkpoint, progress=None)
+    client = None
+    if args.scheduler is not None or args.workers is not None:
+        from cloudct.distributed.core import close_client, connect
+
+        client = connect(args.scheduler, args.workers, backend=args.backend)
+        print(f"tracing on {client}")
+    try:
+        where = {"backend": args.backend, "client": client}
+        if args.resume:
+            run = Retrieval.resume(checkpoint, measurements, initial, truth=truth,
+                                   iterations=args.iterations, **where)
+        else:
+            run = Retrieval(measurements, initial, _config(args), truth=truth, **where)
+        result = run.run(checkpoint=checkpoint, progress=None)
+    finally:
+        if client is not None:
+            close_client(client)
     result.to_netcdf(output)
     print(f"wrote {output} ({run.state.iteration} iterations, {run.state.elapsed:.0f} s); "
           f"checkpoint {checkpoint}")
@@ -129,6 +142,7 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--overwrite", action="store_true")
     _add_run_options(r, iterations=300, photons=100_000)
+    add_distributed_options(r)
     r.set_defaults(func=_cli_retrieve)
 
     p = subparsers.add_parser("report", help="figures and a summary of a retrieval result")

@@ -105,6 +105,9 @@ class Retrieval:
     ``initial`` is an optical medium (e.g. from space carving) whose grid, air and cloud
     albedo/phase are kept; ``mask`` (x, y, z booleans, default: where the initial cloud
     extinction is positive) bounds the cloud; ``truth`` (optional) gives epsilon and delta.
+    ``backend`` and ``client`` (a Dask client, scheduler address or
+    :class:`cloudct.distributed.DaskExecutor`) choose where the photons are traced; they do
+    not change the results (see :mod:`cloudct.distributed`).
     """
 
     def __init__(
@@ -115,8 +118,12 @@ class Retrieval:
         *,
         mask: np.ndarray | None = None,
         truth: xr.Dataset | None = None,
+        backend: str = "cpu",
+        client=None,
     ) -> None:
         validate_medium(initial)
+        self.backend = backend
+        self.client = client
         self.config = config or RetrievalConfig()
         self.measurements = measurements
         self.template = initial
@@ -155,7 +162,8 @@ class Retrieval:
         photons = self._stage_photons()
         result = loss_and_gradient(
             self.medium(), self._stage_data[s.stage], photons=photons,
-            seed=self.config.seed * 1_000_003 + s.iteration,
+            seed=self.config.seed * 1_000_003 + s.iteration, backend=self.backend,
+            client=self.client,
         )
         self.optimizer.state = s.optimizer_state
         s.extinction = self.optimizer.update(s.extinction, result.gradient, self.mask)
@@ -259,6 +267,8 @@ class Retrieval:
         *,
         truth: xr.Dataset | None = None,
         iterations: int | None = None,
+        backend: str = "cpu",
+        client=None,
     ) -> Retrieval:
         """Continue the run stored in checkpoint ``path``; it must belong to these
         measurements and settings (same run id)."""
@@ -268,7 +278,7 @@ class Retrieval:
             config_dict["iterations"] = iterations
         config = RetrievalConfig(**config_dict)
         run = cls(measurements, initial, config, mask=ck["cloud_mask"].values.astype(bool),
-                  truth=truth)
+                  truth=truth, backend=backend, client=client)
         if ck.attrs["run_id"] != run.id:
             raise ValueError(
                 f"checkpoint {path} belongs to another run (id {ck.attrs['run_id']}, these "

@@ -77,12 +77,16 @@ def loss_and_gradient(
     estimator: str = "score",
     batches: int = 32,
     progress: bool | None = False,
+    backend: str = "cpu",
+    client=None,
 ) -> LossGradient:
     """The loss of ``medium`` against ``measurements`` (an images Dataset carrying its
     scene, as written by :func:`cloudct.mc.render.render`) and its gradient.
 
     ``photons`` render the images of the residual (seed ``2 seed``); ``gradient_photons``
     (default: ``photons``) estimate the gradient on independent paths (seed ``2 seed + 1``).
+    ``backend`` and ``client`` (a Dask client, address or executor) as for
+    :func:`cloudct.mc.render.render`; with a client the medium is scattered once for both.
     """
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
@@ -90,13 +94,14 @@ def loss_and_gradient(
     w = pixel_weights(measurements, weights, mask)
     measured = np.nan_to_num(measurements["radiance"].values)
     images = render(
-        medium, scene, photons=photons, seed=2 * seed, batches=batches, progress=progress
+        medium, scene, photons=photons, seed=2 * seed, batches=batches, progress=progress,
+        backend=backend, client=client,
     )
     difference = images["radiance"].values - measured
     residual = w * difference
     loss = 0.5 * float(np.sum(residual * difference))
     mean, std_error, _ = score_function_gradient(
         medium, scene, residual, photons=gradient_photons or photons, seed=2 * seed + 1,
-        batches=batches, progress=progress,
+        batches=batches, progress=progress, backend=backend, client=client,
     )
     return LossGradient(loss, mean, std_error, images, residual)

@@ -1,0 +1,557 @@
+"""Path recycling with the stored paths kept on the Dask workers (stateful placement).
+
+A :class:`DistributedPathStore` is a path store split into parts, contiguous ranges of
+batches; each part is a :class:`~cloudct.recycling.store.PathStore` of its batches, held in
+the memory of one worker as the result of a Dask future (recorded there, never sent back).
+Re-evaluations are tasks that depend on a part's future, so the scheduler runs them on the
+worker that holds it: a recycled iteration moves the medium (scattered once to every
+worker), the residual, and the per-batch images and gradients and per-path log correction
+factors (8 bytes per path) back, never the paths. Should a worker die, the scheduler
+re-records its parts elsewhere from the same seed (the futures' lineage): the same paths,
+bitwise.
+
+A part's store holds the same paths as the corresponding batches of
+:func:`~cloudct.recycling.store.record_paths` with the same seed (photon index
+``b * per_batch + k`` of batch b), and each batch is re-evaluated on its own, so images,
+gradients, standard errors and ESS are bitwise those of one process, whatever the number of
+workers or parts.
+
+:class:`DistributedRecycler` is :class:`~cloudct.recycling.Recycler` on such stores.
+
+Interim: :func:`record_part` re-implements :func:`~cloudct.recycling.store.record_paths`
+for a range of batches (two small kernels that offset the photon index), and
+:class:`DistributedRecycler` ports :meth:`Recycler.evaluate`; both go once
+``record_paths`` takes a batch range and ``Recycler`` routes its store operations through
+overridable methods (see docs/distributed.md, "Recycling").
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import uuid
+from collections.abc import Callable
+
+import numpy as np
+import xarray as xr
+from numba import njit, prange
+
+from cloudct.distributed.core import DistributedError, executor, nbytes
+from cloudct.mc.forward import COUNT, GRADIENT, RECORD, PathRecord, trace_photon
+from cloudct.mc.gradient import check_residual
+from cloudct.mc.render import images_dataset, kernel_inputs
+from cloudct.mc.scene import Scene
+from cloudct.medium import cell_edges
+from cloudct.recycling import recycler as _recycler
+from cloudct.recycling.kernels import (
+    StoreArrays,
+    flat_total_extinction,
+    measure_segments,
+    reference_terms,
+    write_crossings,
+)
+from cloudct.recycling.recycler import STORES, Evaluation, Recycler, store_seed
+from cloudct.recycling.replay import correction_log_weights, effective_sample_size, replay_images
+from cloudct.recycling.store import (
+    STORAGE,
+    MemoryBudgetError,
+    PathStore,
+    check_same_grid,
+    crossings_bytes,
+    lean_bytes,
+    sort_paths,
+    voxel_dtype,
+)
+
+# ------------------------------------------------------------------------------------------
+# Worker side: recording a range of batches, re-evaluating it
+# ------------------------------------------------------------------------------------------
+
+
+@njit(parallel=True, cache=True)
+def count_records_part(
+    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
+    per_batch, first_photon, counts,
+):
+    """counts[j] = records of photon ``first_photon + j`` (j over the part's photons)."""
+    nbatch = counts.size // per_batch
+    image = np.zeros((1, 1, 1))
+    for b in prange(nbatch):
+        for k in range(per_batch):
+            j = b * per_batch + k
+            counts[j] = trace_photon(
+                grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
+                seed, first_photon + j, COUNT, image, image, image, 0.0,
+            )[0]
+
+
+@njit(parallel=True, cache=True)
+def write_records_part(
+    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
+    per_batch, first_photon, path_start, record,
+):
+    """Trace the part's photons again and write their records (rows from path_start)."""
+    nbatch = (path_start.size - 1) // per_batch
+    image = np.zeros((1, 1, 1))
+    for b in prange(nbatch):
+        for k in range(per_batch):
+            j = b * per_batch + k
+            trace_photon(
+                grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
+                seed, first_photon + j, RECORD, image, image, image, 0.0, record, path_start[j],
+            )
+
+
+def record_part(
+    medium: xr.Dataset, scene: Scene, *, seed: int, per_batch: int, start: int, count: int,
+    storage: str = "auto", memory_budget: float | None = None, sort: bool = True,
+    rr_depth: int = 100, rr_survival: float = 0.95,
+) -> PathStore:
+    """The paths of batches ``start .. start + count - 1`` of
+    :func:`~cloudct.recycling.store.record_paths` (same seed, same ``per_batch``) as a
+    store of ``count`` batches: the same records, computed the same way."""
+    if storage not in STORAGE:
+        raise ValueError(f"storage must be one of {STORAGE}, got {storage!r}")
+    start_time = time.perf_counter()
+    k = kernel_inputs(medium, scene)
+    vdtype = voxel_dtype(k.grid.extinction.shape[1:])
+    vsize = np.dtype(vdtype).itemsize
+    npaths = per_batch * count
+    run_args = (
+        k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, rr_depth, rr_survival,
+        int(seed), per_batch, start * per_batch,
+    )
+    counts = np.zeros(npaths, dtype=np.int64)
+    count_records_part(*run_args, counts)
+    path_start = np.zeros(npaths + 1, dtype=np.int64)
+    np.cumsum(counts, out=path_start[1:])
+    nrec = int(path_start[-1])
+    lean = lean_bytes(nrec, npaths, vsize)
+    if memory_budget is not None and lean > memory_budget:
+        raise MemoryBudgetError(
+            f"memory_budget share of {memory_budget / 2**20:.3g} MiB for batches {start}.."
+            f"{start + count - 1} cannot hold their paths (lean storage needs "
+            f"{lean / 2**20:.3g} MiB)"
+        )
+    record = PathRecord(
+        position=np.empty((3, nrec)),
+        direction=np.empty((3, nrec)),
+        optical_depth=np.empty(nrec),
+        kind=np.empty(nrec, dtype=np.int8),
+        voxel=np.empty(nrec, dtype=vdtype),
+    )
+    write_records_part(*run_args, path_start, record)
+    empty_cross = (np.zeros(1, np.int64), np.zeros(0, vdtype), np.zeros(0))
+    arrays = StoreArrays(
+        path_start, np.arange(npaths, dtype=np.int64), record.position, record.direction,
+        record.optical_depth, record.kind, record.voxel, np.empty(nrec), np.empty(nrec),
+        *empty_cross,
+    )
+    count_crossings = storage != "lean"
+    crossings_per_record = np.zeros(nrec, dtype=np.int64)
+    measure_segments(
+        k.grid, arrays, arrays.length, k.periodic, per_batch, count_crossings,
+        crossings_per_record,
+    )
+    chosen = "lean"
+    if count_crossings:
+        ncross = int(crossings_per_record.sum())
+        full = lean + crossings_bytes(nrec, ncross, vsize)
+        fits = memory_budget is None or full <= memory_budget
+        if storage == "crossings" and not fits:
+            raise MemoryBudgetError(
+                f"memory_budget share of {memory_budget / 2**20:.3g} MiB cannot hold the "
+                f"crossings of batches {start}..{start + count - 1} ({full / 2**20:.3g} MiB)"
+            )
+        if fits:
+            chosen = "crossings"
+            crossing_start = np.zeros(nrec + 1, dtype=np.int64)
+            np.cumsum(crossings_per_record, out=crossing_start[1:])
+            del crossings_per_record
+            arrays = arrays._replace(
+                crossing_start=crossing_start,
+                crossing_voxel=np.empty(ncross, dtype=vdtype),
+                crossing_length=np.empty(ncross),
+            )
+            bad = write_crossings(k.grid, arrays, k.periodic, per_batch)
+            if bad:
+                raise RuntimeError(f"{bad} segments crossed a different number of voxels")
+    beta = flat_total_extinction(k.grid)
+    reference_terms(
+        k.grid, k.bank, beta, arrays, chosen == "crossings", k.periodic, per_batch,
+        arrays.seg_ref, arrays.dir_ref,
+    )
+    store = PathStore(
+        arrays=arrays,
+        photon=np.arange(npaths, dtype=np.int64),
+        scene=scene,
+        edges=tuple(np.array(e, dtype=float) for e in k.edges),
+        seed=int(seed),
+        batches=int(count),
+        per_batch=per_batch,
+        rr_depth=int(rr_depth),
+        rr_survival=float(rr_survival),
+        storage=chosen,
+        info={"record_time": 0.0, "memory_budget": memory_budget, "first_batch": start},
+    )
+    if sort:
+        store = sort_paths(store)
+    store.info["record_time"] = time.perf_counter() - start_time
+    return store
+
+
+def part_summary(store: PathStore) -> dict:
+    """Sizes of a part (runs where the part lives; only this small dict travels)."""
+    return {**store.summary(), "records": store.records, "events": store.events}
+
+
+def part_log_weights(store: PathStore, medium: xr.Dataset) -> np.ndarray:
+    """log r of the part's paths in photon order."""
+    from cloudct.distributed.core import _fault
+
+    _fault("log_weights", store.info.get("first_batch", 0))
+    return correction_log_weights(store, medium)
+
+
+def part_replay(store: PathStore, medium: xr.Dataset, residual) -> tuple:
+    """Per-batch images (``residual`` None) or gradients of the part, batch means as
+    :func:`~cloudct.recycling.replay.replay_images`, with per-path log r and the events."""
+    from cloudct.distributed.core import _fault
+
+    _fault("replay", store.info.get("first_batch", 0))
+    if residual is None:
+        values, info = replay_images(store, medium)
+        return values, info["log_r"], info["events"], info["wall_time"]
+    from cloudct.recycling.replay import _replay
+
+    residual = check_residual(residual, store.scene)
+    values, log_r, info = _replay(store, medium, GRADIENT, residual, False, "recycled gradient")
+    return values, log_r, info["events"], info["wall_time"]
+
+
+# ------------------------------------------------------------------------------------------
+# Client side
+# ------------------------------------------------------------------------------------------
+
+
+class DistributedPathStore:
+    """A path store whose parts live on the Dask workers (see the module documentation).
+
+    Has the attributes of :class:`~cloudct.recycling.store.PathStore` that describe it
+    (``paths``, ``batches``, ``per_batch``, ``seed``, ``rr_depth``, ``rr_survival``,
+    ``storage``, ``sorted``, ``edges``, ``scene``, ``nbytes``, ``records``, ``events``) and
+    the operations of :mod:`cloudct.recycling.replay` as methods, with the same results.
+    """
+
+    def __init__(self, ex, scene: Scene, parts: list[tuple[int, int, object]], summaries,
+                 *, edges, seed: int, batches: int, per_batch: int, rr_depth: int,
+                 rr_survival: float, record_bytes: int, record_time: float):
+        self.executor = ex
+        self.scene = scene
+        self.parts = parts  # (first batch, batches, future of the part's PathStore)
+        self.summaries = summaries
+        self.edges = edges
+        self.seed = seed
+        self.batches = batches
+        self.per_batch = per_batch
+        self.rr_depth = rr_depth
+        self.rr_survival = rr_survival
+        self.info = {"record_time": record_time, "bytes_to_workers": record_bytes}
+        storages = sorted({s["storage"] for s in summaries})
+        self.storage = storages[0] if len(storages) == 1 else "mixed"
+        self.sorted = all(s["sorted"] for s in summaries)
+
+    @classmethod
+    def record(
+        cls, client, medium: xr.Dataset, scene: Scene, *, photons: int, seed: int = 0,
+        batches: int = 32, storage: str = "auto", memory_budget: float | None = None,
+        sort: bool = True, rr_depth: int = 100, rr_survival: float = 0.95,
+    ) -> DistributedPathStore:
+        """Record ``photons`` paths on the workers (arguments as
+        :func:`~cloudct.recycling.store.record_paths`; ``memory_budget`` is the total over
+        all parts, shared in proportion to their batches)."""
+        if int(photons) < 1:
+            raise ValueError(f"photons must be a positive count, got {photons}")
+        if int(batches) < 2:
+            raise ValueError(f"batches must be at least 2 for standard errors, got {batches}")
+        if storage not in STORAGE:
+            raise ValueError(f"storage must be one of {STORAGE}, got {storage!r}")
+        t0 = time.perf_counter()
+        ex = executor(client)
+        edges = cell_edges(medium)
+        kernel_inputs(medium, scene)  # validate here, not on the workers
+        per_batch = math.ceil(int(photons) / batches)
+        medium_future, sent = ex.share(medium, cache=True)
+        scene_future, more = ex.share(scene, cache=True)
+        tag = uuid.uuid4().hex[:8]
+        parts = []
+        for start, count in ex.ranges(int(batches)):
+            budget = None if memory_budget is None else memory_budget * count / batches
+            future = ex.submit(
+                record_part, medium_future, scene_future, seed=int(seed), per_batch=per_batch,
+                start=start, count=count, storage=storage, memory_budget=budget, sort=sort,
+                rr_depth=int(rr_depth), rr_survival=float(rr_survival),
+                key=f"cloudct-paths-{tag}-{start}",
+            )
+            parts.append((start, count, future))
+        summaries = ex.gather([
+            ex.submit(part_summary, f, key=f"cloudct-paths-summary-{tag}-{s}")
+            for s, _, f in parts
+        ])
+        return cls(
+            ex, scene, parts, summaries, edges=tuple(np.asarray(e, float) for e in edges),
+            seed=int(seed), batches=int(batches), per_batch=per_batch, rr_depth=int(rr_depth),
+            rr_survival=float(rr_survival), record_bytes=sent + more,
+            record_time=time.perf_counter() - t0,
+        )
+
+    # -- sizes ------------------------------------------------------------------------------
+
+    @property
+    def paths(self) -> int:
+        return self.per_batch * self.batches
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the parts on the workers, together."""
+        return int(sum(s["bytes"] for s in self.summaries))
+
+    @property
+    def records(self) -> int:
+        return int(sum(s["records"] for s in self.summaries))
+
+    @property
+    def events(self) -> int:
+        return int(sum(s["events"] for s in self.summaries))
+
+    def placement(self) -> dict[int, tuple[str, ...]]:
+        """Workers holding each part, by first batch."""
+        who = self.executor.client.who_has([f for _, _, f in self.parts])
+        return {s: tuple(who[f.key]) for s, _, f in self.parts}
+
+    def release(self) -> None:
+        """Free the parts on the workers."""
+        self.executor.client.cancel([f for _, _, f in self.parts])
+        self.parts = []
+
+    # -- operations -------------------------------------------------------------------------
+
+    def _run(self, func, *args, desc: str) -> tuple[list, int]:
+        ex = self.executor
+        tag = uuid.uuid4().hex[:8]
+        futures = [
+            ex.submit(func, f, *args, key=f"cloudct-{desc}-{tag}-{s}") for s, _, f in self.parts
+        ]
+        results = ex.gather(futures)
+        if len(results) != len(self.parts):
+            raise DistributedError("results of a recycled evaluation are missing")
+        covered = [(s, n) for s, n, _ in self.parts]
+        expected = 0
+        for s, n in covered:
+            if s != expected:
+                raise DistributedError(f"path store parts do not cover batch {expected}")
+            expected += n
+        if expected != self.batches:
+            raise DistributedError(f"path store parts cover {expected} of {self.batches} batches")
+        return results, sum(nbytes(r) for r in results)
+
+    def log_weights(self, medium: xr.Dataset) -> tuple[np.ndarray, dict]:
+        """:func:`~cloudct.recycling.replay.correction_log_weights` of all paths, photon
+        order, and the bytes moved."""
+        check_same_grid(self, cell_edges(medium))
+        medium_future, sent = self.executor.share(medium, cache=True)
+        results, received = self._run(part_log_weights, medium_future, desc="log-weights")
+        log_r = np.concatenate(results)
+        if log_r.size != self.paths:
+            raise DistributedError(f"{log_r.size} of {self.paths} log weights came back")
+        return log_r, {"bytes_to_workers": sent, "bytes_from_workers": received}
+
+    def replay(self, medium: xr.Dataset, residual: np.ndarray | None = None):
+        """Per-batch images (float64[batches, view, row, col], ``residual`` None) or
+        per-batch gradients (float64[batches, x, y, z]), batch means as in
+        :mod:`cloudct.recycling.replay`, and info (events, ess, ess_fraction, log_r,
+        wall_time, bytes moved)."""
+        t0 = time.perf_counter()
+        check_same_grid(self, cell_edges(medium))
+        ex = self.executor
+        medium_future, sent = ex.share(medium, cache=True)
+        residual_future = None
+        if residual is not None:
+            residual = check_residual(residual, self.scene)
+            residual_future, more = ex.share(residual)
+            sent += more
+        results, received = self._run(
+            part_replay, medium_future, residual_future,
+            desc="recycled-images" if residual is None else "recycled-gradient",
+        )
+        for (_, n, _), r in zip(self.parts, results, strict=True):
+            if r[0].shape[0] != n:
+                raise DistributedError("a part returned the wrong number of batches")
+        values = np.concatenate([r[0] for r in results])
+        log_r = np.concatenate([r[1] for r in results])
+        ess = effective_sample_size(log_r)
+        info = {
+            "photons": self.paths,
+            "events": int(sum(r[2] for r in results)),
+            "wall_time": time.perf_counter() - t0,
+            "worker_time": float(sum(r[3] for r in results)),
+            "ess": ess,
+            "ess_fraction": ess / self.paths,
+            "storage": self.storage,
+            "sorted": self.sorted,
+            "seed": self.seed,
+            "log_r": log_r,
+            "bytes_to_workers": sent,
+            "bytes_from_workers": received,
+        }
+        return values, info
+
+    def replay_images(self, medium: xr.Dataset):
+        """As :func:`cloudct.recycling.replay.replay_images`."""
+        return self.replay(medium)
+
+    def replay_gradient(self, medium: xr.Dataset, residual: np.ndarray):
+        """As :func:`cloudct.recycling.replay.replay_gradient`: ``(mean, std_error, info)``."""
+        values, info = self.replay(medium, residual)
+        return (
+            values.mean(axis=0),
+            values.std(axis=0, ddof=1) / math.sqrt(self.batches),
+            info,
+        )
+
+
+class DistributedRecycler(Recycler):
+    """:class:`~cloudct.recycling.Recycler` with its path stores on the Dask workers of
+    ``client`` (a client, address or :class:`~cloudct.distributed.DaskExecutor`); the same
+    arguments otherwise (``memory_budget``: bytes over all workers), the same evaluations,
+    bitwise. ``info`` of each evaluation adds ``bytes_to_workers`` and
+    ``bytes_from_workers``."""
+
+    def __init__(self, scene: Scene, *, client=None, **kwargs) -> None:
+        super().__init__(scene, **kwargs)
+        self.executor = executor(client)
+        self._moved = [0, 0]  # bytes to and from the workers in the current evaluation
+
+    def resample(self, medium: xr.Dataset, which: tuple[str, ...] = STORES) -> None:
+        """Record new paths under ``medium`` on the workers for the named stores."""
+        for name in which:
+            slot = self._slots[name]
+            if slot.store is not None:
+                slot.store.release()
+            slot.store = None
+            slot.store = DistributedPathStore.record(
+                self.executor, medium, self.scene, photons=slot.photons,
+                seed=store_seed(self.seed, slot.generation, STORES.index(name)),
+                batches=self.batches, storage=self.storage, memory_budget=self._budget(name),
+                sort=self.sort, rr_depth=self.rr_depth, rr_survival=self.rr_survival,
+            )
+            self._moved[0] += slot.store.info["bytes_to_workers"]
+            slot.generation += 1
+            slot.age = 0
+
+    def evaluate(
+        self,
+        medium: xr.Dataset,
+        residual: Callable[[xr.Dataset], np.ndarray] | np.ndarray | None = None,
+    ) -> Evaluation:
+        """As :meth:`cloudct.recycling.Recycler.evaluate` (a port of it that calls the
+        distributed store's operations)."""
+        start = time.perf_counter()
+        self._moved = [0, 0]
+        edges = cell_edges(medium)
+        for slot in self._slots.values():
+            if slot.store is not None:
+                check_same_grid(slot.store, edges)
+        needed = ("images",) if residual is None else STORES
+        reasons: dict[str, str | None] = {}
+        checked: dict[str, dict] = {}
+        record_time = 0.0
+        for name in needed:
+            slot = self._slots[name]
+            if slot.store is None:
+                reason = "initial"
+            else:
+                ess = max_log_r = None
+                if self.policy.uses_ess:
+                    log_r, moved = slot.store.log_weights(medium)
+                    self._count(moved)
+                    ess = effective_sample_size(log_r) / slot.store.paths
+                    max_log_r = float(log_r.max())
+                    checked[name] = {"ess_fraction": ess, "max_ratio": math.exp(max_log_r)}
+                reason = self.policy.resample_reason(slot.age, ess, max_log_r)
+            if reason is not None:
+                t0 = time.perf_counter()
+                self.resample(medium, (name,))
+                record_time += time.perf_counter() - t0
+            reasons[name] = reason
+
+        store = self._slots["images"].store
+        batch_images, image_info = store.replay_images(medium)
+        self._count(image_info)
+        images = images_dataset(
+            batch_images.mean(axis=0),
+            batch_images.std(axis=0, ddof=1) / math.sqrt(store.batches),
+            self.scene,
+            method="forward-recycled",
+            photons=store.paths,
+            seed=store.seed,
+            batches=store.batches,
+            events=image_info["events"],
+            wall_time=image_info["wall_time"],
+            rr_depth=store.rr_depth,
+            rr_survival=store.rr_survival,
+            storage=store.storage,
+            ess_fraction=image_info["ess_fraction"],
+        )
+        weights = gradient = gradient_se = None
+        gradient_info: dict = {}
+        if residual is not None:
+            weights = residual(images) if callable(residual) else residual
+            gradient, gradient_se, gradient_info = self._slots["gradient"].store.replay_gradient(
+                medium, weights
+            )
+            self._count(gradient_info)
+        for name in needed:
+            self._slots[name].age += 1
+        info = {
+            "iteration": self.iteration,
+            "resampled": any(r is not None for r in reasons.values()),
+            "reasons": reasons,
+            "ess_images": image_info["ess_fraction"],
+            "ess_gradient": gradient_info.get("ess_fraction"),
+            "checked": checked,
+            "age": {name: self._slots[name].age for name in needed},
+            "record_time": record_time,
+            "images_time": image_info["wall_time"],
+            "gradient_time": gradient_info.get("wall_time", 0.0),
+            "bytes": self.nbytes,
+            "bytes_to_workers": self._moved[0],
+            "bytes_from_workers": self._moved[1],
+        }
+        fractions = [f for f in (info["ess_images"], info["ess_gradient"]) if f is not None]
+        info["ess_fraction"] = min(fractions)
+        info["wall_time"] = time.perf_counter() - start
+        self.log.append(info)
+        _recycler.logger.info(
+            "distributed recycling iteration %d: %s, ESS fraction %.3f, ages %s, %.2f s",
+            self.iteration,
+            "resampled (" + ", ".join(f"{k}: {v}" for k, v in reasons.items() if v) + ")"
+            if info["resampled"] else "recycled",
+            info["ess_fraction"], info["age"], info["wall_time"],
+        )
+        self.iteration += 1
+        return Evaluation(images, weights, gradient, gradient_se, info)
+
+    def _count(self, info: dict) -> None:
+        self._moved[0] += info.get("bytes_to_workers", 0)
+        self._moved[1] += info.get("bytes_from_workers", 0)
+
+
+__all__ = [
+    "DistributedPathStore",
+    "DistributedRecycler",
+    "count_records_part",
+    "part_replay",
+    "record_part",
+    "write_records_part",
+]

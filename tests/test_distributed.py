@@ -1,0 +1,309 @@
+"""Scale-out over Dask: a local cluster of 2 single-threaded worker processes.
+
+- Forward and backward images, score-function gradients, loss gradients, retrieval steps
+  and recycled evaluations equal the single-process results for the same seeds BITWISE
+  (np.array_equal), whatever the split into tasks.
+- With recycling the paths stay on the workers: the parts do not move between recycled
+  iterations and only media, residuals and results come back.
+- A worker killed in the middle of a call: the task is re-run elsewhere and the result is
+  still bitwise the single-process one; a task that keeps killing workers makes the call
+  raise DistributedError; the reduction refuses results that do not cover every submitted
+  batch exactly once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("distributed")
+
+import cloudpickle  # noqa: E402
+import dask  # noqa: E402
+from distributed import WorkerPlugin  # noqa: E402
+from test_recycling import scaled, weights_for  # noqa: E402
+from test_score_gradient import gradient_medium, gradient_scene, pixel_weights  # noqa: E402
+
+import cloudct.distributed.core as core  # noqa: E402
+from cloudct.distributed import (  # noqa: E402
+    DaskExecutor,
+    DistributedError,
+    DistributedRecycler,
+    close_client,
+    local_cluster,
+)
+from cloudct.distributed.core import BatchPart, assemble  # noqa: E402
+from cloudct.distributed.recycling import record_part  # noqa: E402
+from cloudct.mc.gradient import score_function_gradient  # noqa: E402
+from cloudct.mc.render import render  # noqa: E402
+from cloudct.recycling import FixedPeriod, Recycler  # noqa: E402
+from cloudct.retrieval.loop import Retrieval, RetrievalConfig  # noqa: E402
+from cloudct.retrieval.loss import loss_and_gradient  # noqa: E402
+
+# functions of this module run on the workers: pickle them by value
+cloudpickle.register_pickle_by_value(sys.modules[__name__])
+
+
+@pytest.fixture(scope="module")
+def client():
+    # compile (or load from the numba cache) the worker-only kernels here, so that the two
+    # workers load them from the cache instead of both compiling them
+    record_part(gradient_medium(), gradient_scene(), seed=0, per_batch=1, start=1, count=2)
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+        c = local_cluster(2, threads=1)
+    yield c
+    close_client(c)
+
+
+def same(a, b) -> bool:
+    return np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("method, photons", [("forward", 20_000), ("backward", 64)])
+def test_images_equal_the_single_process_images_bitwise(client, method, photons):
+    medium, scene = gradient_medium(), gradient_scene()
+    ref = render(medium, scene, photons=photons, method=method, seed=3, progress=False)
+    for where in (client, DaskExecutor(client, batches_per_task=1),
+                  DaskExecutor(client, batches_per_task=5)):
+        out = render(medium, scene, photons=photons, method=method, seed=3, progress=False,
+                     client=where)
+        assert same(out.radiance.values, ref.radiance.values)
+        assert same(out.radiance_std_error.values, ref.radiance_std_error.values)
+        assert out.attrs["events"] == ref.attrs["events"]
+        assert out.attrs["workers"] == 2 and out.attrs["backend"] == "cpu"
+        assert out.attrs["bytes_from_workers"] >= out.radiance.size * 8 * 32
+
+
+def test_gradients_loss_and_retrieval_equal_the_single_process_ones_bitwise(client):
+    medium, scene = gradient_medium(), gradient_scene()
+    weights = pixel_weights()
+    ref = score_function_gradient(medium, scene, weights, photons=20_000, seed=5,
+                                  progress=False)
+    out = score_function_gradient(medium, scene, weights, photons=20_000, seed=5,
+                                  progress=False, client=client)
+    assert same(out[0], ref[0]) and same(out[1], ref[1])
+    assert out[2]["events"] == ref[2]["events"]
+
+    measured = render(medium, scene, photons=40_000, seed=77, progress=False)
+    guess = scaled(medium, 0.8)
+    a = loss_and_gradient(guess, measured, photons=10_000, seed=2)
+    b = loss_and_gradient(guess, measured, photons=10_000, seed=2, client=client)
+    assert a.loss == b.loss and same(a.gradient, b.gradient)
+    assert same(a.gradient_std_error, b.gradient_std_error)
+
+    config = RetrievalConfig(iterations=2, photons=8_000, stages=(1,), stage_photons=(1.0,))
+    one = Retrieval(measured, guess, config)
+    one.run(progress=False)
+    many = Retrieval(measured, guess, config, client=client)
+    many.run(progress=False)
+    assert same(one.state.extinction, many.state.extinction)
+    assert one.state.log["loss"] == many.state.log["loss"]
+
+
+def test_recycled_evaluations_equal_the_single_process_ones_and_paths_stay(client):
+    medium, scene = gradient_medium(), gradient_scene()
+    w = weights_for(scene)
+
+    def residual(images):
+        return w * images.radiance.values
+
+    local = Recycler(scene, photons=3_200, policy=FixedPeriod(2), seed=3)
+    remote = DistributedRecycler(scene, client=client, photons=3_200, policy=FixedPeriod(2),
+                                 seed=3)
+    placements = []
+    for t in range(3):
+        m = scaled(medium, 1.0 + 0.03 * t)
+        a = local.evaluate(m, residual=residual)
+        b = remote.evaluate(m, residual=residual)
+        assert same(a.images.radiance.values, b.images.radiance.values)
+        assert same(a.images.radiance_std_error.values, b.images.radiance_std_error.values)
+        assert same(a.gradient, b.gradient) and same(a.gradient_std_error, b.gradient_std_error)
+        for key in ("reasons", "resampled", "ess_images", "ess_gradient", "ess_fraction", "age"):
+            assert a.info[key] == b.info[key], key
+        placements.append(remote.image_store.placement())
+        # a recycled iteration moves the medium and the results, not the paths
+        if not b.info["resampled"]:
+            assert b.info["bytes_from_workers"] < remote.nbytes / 4
+    assert [e["resampled"] for e in remote.log] == [True, False, True]
+    assert placements[0] == placements[1]  # the parts stayed where they were recorded
+    assert len({w for p in placements[0].values() for w in p}) == 2  # on both workers
+
+
+def test_partial_results_are_refused():
+    part = BatchPart(0, 2, np.zeros((2, 3)), np.zeros(2, np.int64), "cpu", 0.0)
+    later = BatchPart(2, 2, np.ones((2, 3)), np.zeros(2, np.int64), "cpu", 0.0)
+    values, _ = assemble([later, part], 4)
+    assert same(values[:, 0], [0, 0, 1, 1])
+    with pytest.raises(DistributedError, match="partial"):
+        assemble([part], 4)  # a task's batches missing
+    with pytest.raises(DistributedError, match="partial"):
+        assemble([part, part, later], 4)  # a range twice
+    with pytest.raises(DistributedError, match="partial"):
+        assemble([part, later._replace(values=np.ones((1, 3)))], 4)  # a short task
+
+
+def _kill_once(marker: str):
+    def hook(kind, start):
+        if start > 0:  # not the first task: the call is under way elsewhere
+            try:
+                os.close(os.open(marker, os.O_CREAT | os.O_EXCL))
+            except FileExistsError:
+                return
+            os._exit(1)
+
+    return hook
+
+
+def _set_hook(hook):
+    core.FAULT_HOOK = hook
+
+
+def test_a_worker_killed_mid_call_is_replaced_and_the_result_is_complete(client, tmp_path):
+    medium, scene = gradient_medium(), gradient_scene()
+    ref = render(medium, scene, photons=20_000, seed=9, progress=False)
+    marker = str(tmp_path / "killed")
+    client.run(_set_hook, _kill_once(marker))
+    try:
+        out = render(medium, scene, photons=20_000, seed=9, progress=False,
+                     client=DaskExecutor(client, batches_per_task=4))
+    finally:
+        client.run(_set_hook, None)
+    assert os.path.exists(marker)  # a worker did die during the call
+    assert out.attrs["tasks"] == 8 and out.attrs["batches"] == 32
+    assert same(out.radiance.values, ref.radiance.values)
+    assert same(out.radiance_std_error.values, ref.radiance_std_error.values)
+    client.wait_for_workers(2)
+
+
+class _KillAlways(WorkerPlugin):
+    """Every worker (restarted ones too) dies in every forward task."""
+
+    name = "cloudct-test-kill"
+
+    def setup(self, worker):
+        def hook(kind, start):
+            os._exit(1)
+
+        core.FAULT_HOOK = hook
+
+    def teardown(self, worker):
+        core.FAULT_HOOK = None
+
+
+def test_a_task_that_keeps_killing_workers_fails_the_call_clearly(client):
+    medium, scene = gradient_medium(), gradient_scene()
+    client.register_plugin(_KillAlways())
+    try:
+        with pytest.raises(DistributedError, match="no partial result"):
+            render(medium, scene, photons=2_000, seed=1, progress=False,
+                   client=DaskExecutor(client, batches_per_task=32))
+    finally:
+        client.unregister_worker_plugin(_KillAlways.name)
+        client.run(_set_hook, None)
+    client.wait_for_workers(2)
+
+
+CUDASIM_SCRIPT = """
+import json
+import numpy as np
+from numba import config
+assert config.ENABLE_CUDASIM
+import cloudct.mc.cuda_kernels as ck
+from cloudct.distributed.core import assemble, backward_task, forward_task
+from cloudct.mc.forward import GRADIENT, RENDER
+from cloudct.mc.gradient import score_function_gradient
+from cloudct.mc.render import kernel_inputs, render_batches
+from test_score_gradient import gradient_medium, gradient_scene, pixel_weights
+
+ck.THREADS_PER_BLOCK = 1  # the simulator then adds in the CPU's order: bitwise
+medium, scene = gradient_medium(), gradient_scene()
+k = kernel_inputs(medium, scene)
+out = {}
+batches, per_batch = 6, 16
+ref, _ = render_batches(medium, scene, photons=batches * per_batch, batches=batches,
+                        progress=False, backend="cpu")
+parts = [forward_task(k, "cuda", 100, 0.95, 0, per_batch, RENDER, None, s, n)
+         for s, n in ((0, 2), (2, 3), (5, 1))]
+values, _ = assemble(parts, batches)
+out["forward"] = bool(np.array_equal(values / per_batch, ref))
+out["backends"] = sorted({p.backend for p in parts})
+ref, _ = render_batches(medium, scene, photons=2 * batches, batches=batches, method="backward",
+                        progress=False, backend="cpu")
+parts = [backward_task(k, "cuda", 100, 0.95, 0, 2, batches, s, 1) for s in (0, 1)]
+values, _ = assemble(parts, 2, axis=1)
+out["backward"] = bool(np.array_equal(values / 2, ref))
+w = pixel_weights()
+ck.SORT_PATHS = False
+mean = score_function_gradient(medium, scene, w, photons=batches * per_batch, batches=batches,
+                               progress=False)[0]
+parts = [forward_task(k, "cuda", 100, 0.95, 0, per_batch, GRADIENT, w, s, 3) for s in (0, 3)]
+values, _ = assemble(parts, batches)
+out["gradient"] = float(np.abs((values / per_batch).mean(axis=0) - mean).max() /
+                        np.abs(mean).max())
+print("RESULT " + json.dumps(out))
+"""
+
+
+def test_gpu_worker_tasks_under_the_cuda_simulator():
+    """The tasks of a GPU worker (backend "cuda": the CUDA launchers run on a range of
+    batches, results copied back by ``run_range``) give the CPU's per-batch arrays, checked
+    with numba-cuda's simulator (no GPU here)."""
+    pytest.importorskip("numba_cuda")
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1",
+               PYTHONPATH=os.pathsep.join([str(root), str(root / "tests")]))
+    run = subprocess.run([sys.executable, "-c", CUDASIM_SCRIPT], env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    import json
+
+    out = json.loads(run.stdout.split("RESULT ", 1)[1])
+    assert out["backends"] == ["cuda"]
+    assert out["forward"] and out["backward"]
+    assert out["gradient"] < 1e-12  # the simulator's gradient pass adds in another order
+
+
+def test_cli_render_and_retrieve_on_workers(client, tmp_path):
+    """``cloudct render --scheduler`` / ``--workers`` and ``cloudct retrieve --scheduler``
+    give the files of the single-process commands."""
+    import xarray as xr
+
+    from cloudct.cli import main
+    from cloudct.medium import save_medium
+    from data_synth.measurements import save_measurements, synthesize_measurements
+
+    medium, scene = gradient_medium(), gradient_scene()
+    save_medium(medium, tmp_path / "m.nc")
+    scene.to_dataset().to_netcdf(tmp_path / "s.nc")
+    address = client.scheduler.address
+    common = ["render", str(tmp_path / "m.nc"), "--scene", str(tmp_path / "s.nc"),
+              "--photons", "4000"]
+    assert main([*common, "-o", str(tmp_path / "one.nc")]) == 0
+    assert main([*common, "-o", str(tmp_path / "sch.nc"), "--scheduler", address]) == 0
+    assert main([*common, "-o", str(tmp_path / "two.nc"), "--workers", "2"]) == 0
+    one = xr.load_dataset(tmp_path / "one.nc")
+    for name in ("sch.nc", "two.nc"):
+        other = xr.load_dataset(tmp_path / name)
+        assert same(one.radiance.values, other.radiance.values)
+        assert other.attrs["workers"] == 2
+
+    scene8 = dataclasses.replace(scene, cameras=[
+        dataclasses.replace(c, nrows=8, ncols=8) for c in scene.cameras
+    ])  # the retrieval's default stages need image sizes divisible by 4
+    measured = synthesize_measurements(medium, scene8, photons=20_000, seed=4, progress=False)
+    save_measurements(measured, tmp_path / "meas.nc")
+    save_medium(scaled(medium, 0.8), tmp_path / "init.nc")
+    common = ["retrieve", str(tmp_path / "meas.nc"), "--init", str(tmp_path / "init.nc"),
+              "--iterations", "2", "--photons", "4000"]
+    assert main([*common, "-o", str(tmp_path / "r1.nc")]) == 0
+    assert main([*common, "-o", str(tmp_path / "r2.nc"), "--scheduler", address]) == 0
+    r1, r2 = xr.load_dataset(tmp_path / "r1.nc"), xr.load_dataset(tmp_path / "r2.nc")
+    assert same(r1.cloud_extinction.values, r2.cloud_extinction.values)
+    assert same(r1.log_loss.values, r2.log_loss.values)
