@@ -107,3 +107,17 @@ def test_tiny_retrieval_lowers_epsilon(measurements):
     stage = result["log_stage"].values
     last = result["log_loss"].values[stage == stage.max()]
     assert len(last) >= 10 and last[-5:].mean() < 0.8 * last[:3].mean(), last
+
+
+def test_tiny_retrieval_with_recycling(measurements):
+    """Alg. 2: paths recycled for 5 iterations at a time; epsilon still falls, and the log
+    records the resampling decisions and the correction factors' ESS."""
+    truth = gradient_medium()
+    config = RetrievalConfig(iterations=40, recycling="fixed", period=5, **CONFIG)
+    result = Retrieval(measurements, initial_guess(), config, truth=truth).run(progress=False)
+    resampled = result["log_resampled"].values
+    assert 8 <= resampled.sum() <= 10  # every 5th iteration, and at each new stage
+    assert np.all(result["log_ess"].values[resampled == 0] < 1.0)
+    eps0, _ = epsilon_delta(truth["cloud_extinction"].values,
+                            initial_guess()["cloud_extinction"].values)
+    assert result["log_epsilon"].values[-5:].mean() < 0.75 * eps0

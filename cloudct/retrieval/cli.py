@@ -34,7 +34,7 @@ def _config(args: argparse.Namespace) -> RetrievalConfig:
     return RetrievalConfig(
         iterations=args.iterations, photons=args.photons, optimizer=args.optimizer,
         step=args.step, seed=args.seed, checkpoint_every=args.checkpoint_every,
-        time_limit=args.time_limit,
+        time_limit=args.time_limit, recycling=args.recycling, period=args.period,
     )
 
 
@@ -103,7 +103,8 @@ def _cli_demo(args: argparse.Namespace) -> int:
     save_medium(initial, out / "init.nc", overwrite=True)
     print(f"3/4 retrieving ({args.iterations} iterations, {args.photons} photons each) ...")
     config = RetrievalConfig(iterations=args.iterations, photons=args.photons, step=args.step,
-                             time_limit=args.time_limit)
+                             time_limit=args.time_limit, recycling=args.recycling,
+                             period=args.period)
     run = Retrieval(measurements, initial, config, truth=truth)
     result = run.run(checkpoint=out / "checkpoint.nc", progress=None)
     result.to_netcdf(out / "result.nc")
@@ -122,6 +123,10 @@ def _add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) 
     p.add_argument("--photons", type=int, default=photons, help="photons per iteration")
     p.add_argument("--step", type=float, default=2.0, help="step size [1/km per iteration]")
     p.add_argument("--time-limit", type=float, default=None, help="stop after S seconds")
+    p.add_argument("--recycling", choices=("none", "fixed", "adaptive"), default="none",
+                   help="path recycling policy (seed paper Alg. 2)")
+    p.add_argument("--period", type=int, default=30,
+                   help="recycling period N_r (fixed) or maximum period (adaptive)")
 
 
 def register_cli(subparsers: argparse._SubParsersAction) -> None:

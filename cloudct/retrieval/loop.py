@@ -25,10 +25,11 @@ from tqdm.auto import tqdm
 from cloudct.mc.cameras import Camera
 from cloudct.mc.scene import Scene
 from cloudct.medium import validate_medium
-from cloudct.retrieval.loss import loss_and_gradient
+from cloudct.retrieval.loss import loss_and_gradient, pixel_weights
 from cloudct.retrieval.metrics import epsilon_delta
 from cloudct.retrieval.optimizers import make_optimizer, project
 
+RECYCLING = ("none", "fixed", "adaptive")
 LOG_FIELDS = ("loss", "epsilon", "delta", "seconds", "photons", "stage", "resampled", "ess")
 
 
@@ -47,6 +48,9 @@ class RetrievalConfig:
     saturation_tolerance: float = 0.02  # relative decrease below which the loss saturates
     checkpoint_every: int = 20
     time_limit: float | None = None  # seconds; stop after this much wall time
+    recycling: str = "none"  # "none", "fixed" (every `period` iterations) or "adaptive" (ESS)
+    period: int = 30  # fixed period N_r, or the adaptive policy's maximum period
+    min_ess: float = 0.5  # adaptive: resample when ESS / paths falls below this
 
     def __post_init__(self) -> None:
         self.stages = tuple(int(s) for s in self.stages)
@@ -55,6 +59,18 @@ class RetrievalConfig:
             raise ValueError("stages and stage_photons must have the same, non-zero length")
         if self.iterations < 0 or self.photons < 1 or self.checkpoint_every < 1:
             raise ValueError("iterations >= 0, photons >= 1 and checkpoint_every >= 1 needed")
+        if self.recycling not in RECYCLING:
+            raise ValueError(f"recycling must be one of {RECYCLING}, got {self.recycling!r}")
+
+    def policy(self):
+        """The recycling policy of these settings (None without recycling)."""
+        from cloudct.recycling.policy import AdaptiveESS, FixedPeriod
+
+        if self.recycling == "fixed":
+            return FixedPeriod(self.period)
+        if self.recycling == "adaptive":
+            return AdaptiveESS(min_fraction=self.min_ess, max_period=self.period)
+        return None
 
 
 def coarse_measurements(measurements: xr.Dataset, block: int) -> xr.Dataset:
@@ -137,6 +153,8 @@ class Retrieval:
             raise ValueError("the true medium's grid differs from the initial medium's")
         self.optimizer = make_optimizer(self.config.optimizer, self.config.step)
         self.id = run_id(measurements, self.config)
+        self._recycler = None
+        self._recycler_stage = -1
         self._stage_data = [coarse_measurements(measurements, b) for b in self.config.stages]
         self.state = RetrievalState(
             iteration=0, stage=0,
@@ -160,13 +178,17 @@ class Retrieval:
         s = self.state
         start = time.perf_counter()
         photons = self._stage_photons()
-        result = loss_and_gradient(
-            self.medium(), self._stage_data[s.stage], photons=photons,
-            seed=self.config.seed * 1_000_003 + s.iteration, backend=self.backend,
-            client=self.client,
-        )
+        if self.config.recycling == "none":
+            result = loss_and_gradient(
+                self.medium(), self._stage_data[s.stage], photons=photons,
+                seed=self.config.seed * 1_000_003 + s.iteration, backend=self.backend,
+                client=self.client,
+            )
+            loss, gradient, resampled, ess = result.loss, result.gradient, 1.0, math.nan
+        else:
+            loss, gradient, resampled, ess = self._recycled_loss_and_gradient(photons)
         self.optimizer.state = s.optimizer_state
-        s.extinction = self.optimizer.update(s.extinction, result.gradient, self.mask)
+        s.extinction = self.optimizer.update(s.extinction, gradient, self.mask)
         s.optimizer_state = self.optimizer.state
         eps, delta = (math.nan, math.nan)
         if self.truth is not None:
@@ -174,8 +196,8 @@ class Retrieval:
         seconds = time.perf_counter() - start
         s.elapsed += seconds
         row = {
-            "loss": result.loss, "epsilon": eps, "delta": delta, "seconds": s.elapsed,
-            "photons": 2 * photons, "stage": s.stage, "resampled": 1.0, "ess": math.nan,
+            "loss": loss, "epsilon": eps, "delta": delta, "seconds": s.elapsed,
+            "photons": 2 * photons, "stage": s.stage, "resampled": resampled, "ess": ess,
             "iteration_seconds": seconds,
         }
         for key in LOG_FIELDS:
@@ -183,6 +205,28 @@ class Retrieval:
         s.iteration += 1
         self._advance_stage_if_saturated()
         return row
+
+    def _recycled_loss_and_gradient(self, photons: int) -> tuple[float, np.ndarray, float, float]:
+        """Loss and gradient from the stage's recycler (seed paper Alg. 2): stored paths
+        re-evaluated under the current medium, resampled when the policy says so."""
+        from cloudct.recycling.recycler import Recycler
+
+        s = self.state
+        data = self._stage_data[s.stage]
+        if self._recycler is None or self._recycler_stage != s.stage:
+            self._recycler = Recycler(
+                Scene.from_dataset(data), photons=photons, policy=self.config.policy(),
+                seed=self.config.seed * 1_000_003 + 7919 * (s.stage + 1),
+            )
+            self._recycler_stage = s.stage
+        w = pixel_weights(data)
+        measured = np.nan_to_num(data["radiance"].values)
+        ev = self._recycler.evaluate(
+            self.medium(), residual=lambda images: w * (images["radiance"].values - measured)
+        )
+        difference = ev.images["radiance"].values - measured
+        loss = 0.5 * float(np.sum(w * difference * difference))
+        return loss, ev.gradient, float(ev.info["resampled"]), float(ev.info["ess_fraction"])
 
     def _advance_stage_if_saturated(self) -> None:
         s = self.state
@@ -271,7 +315,9 @@ class Retrieval:
         client=None,
     ) -> Retrieval:
         """Continue the run stored in checkpoint ``path``; it must belong to these
-        measurements and settings (same run id)."""
+        measurements and settings (same run id). Without recycling the resumed run repeats
+        exactly what the uninterrupted run does; with recycling the path stores are not in
+        the checkpoint, so the resumed run first records new paths under the current medium."""
         ck = xr.load_dataset(path)
         config_dict = json.loads(ck.attrs["config"])
         if iterations is not None:
