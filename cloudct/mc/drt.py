@@ -133,11 +133,12 @@ import xarray as xr
 from numba import njit, prange
 
 from cloudct.mc.accumulate import add_to
-from cloudct.mc.cameras import camera_arrays, pixel_ray
+from cloudct.mc.cameras import pixel_ray
 from cloudct.mc.events import lambertian_bounce, russian_roulette, scatter
+from cloudct.mc.gradient import check_residual
 from cloudct.mc.random import DOMAIN_DRT, stream_start, uniform
-from cloudct.mc.scene import Scene, check_scene
-from cloudct.mc.sun import sun_arrays
+from cloudct.mc.render import check_sampling, kernel_inputs
+from cloudct.mc.scene import Scene
 from cloudct.mc.traversal import (
     BOTTOM,
     INF,
@@ -151,14 +152,12 @@ from cloudct.mc.traversal import (
     ray_box_entry,
     wrap_into_box,
 )
-from cloudct.medium import cell_edges, is_optical, validate_medium
 from cloudct.physics.mixing import (
     effective_albedo,
     mixture_phase_function,
     scattering_coefficient,
     total_extinction,
 )
-from cloudct.physics.optics import kernel_arrays, to_optical
 from cloudct.physics.phase import phase_function, sample_phase_cosine, scatter_direction
 
 INV_PI = 1.0 / math.pi
@@ -467,34 +466,16 @@ def drt_gradient(
     units): the mean over the batches and its standard error (std of the batch means over
     sqrt(batches)).
     """
-    if int(samples_per_pixel) < 1:
-        raise ValueError(f"samples_per_pixel must be positive, got {samples_per_pixel}")
-    if int(batches) < 2:
-        raise ValueError(f"batches must be at least 2 for standard errors, got {batches}")
-    if not 0.0 < rr_survival <= 1.0 or rr_depth < 1:
-        raise ValueError("rr_survival must be in (0, 1] and rr_depth >= 1")
-    validate_medium(medium)
-    optical = medium if is_optical(medium) else to_optical(medium)
-    grid, bank = kernel_arrays(optical)
-    edges = cell_edges(optical)
-    check_scene(scene, edges)
-    cams = camera_arrays(scene.cameras)
-    sun = sun_arrays(scene.sun, edges, scene.periodic)
-    ground = -1.0 if scene.ground_albedo is None else float(scene.ground_albedo)
-    residual = np.ascontiguousarray(residual, dtype=np.float64)
-    shape = (len(scene.cameras), cams.nrows, cams.ncols)
-    if residual.shape != shape:
-        raise ValueError(f"residual must have shape (view, row, col) = {shape}, "
-                         f"got {residual.shape}")
-    if not np.all(np.isfinite(residual)):
-        raise ValueError("residual must be finite")
+    check_sampling(samples_per_pixel, batches, rr_depth, rr_survival)
+    residual = check_residual(residual, scene)
+    k = kernel_inputs(medium, scene)
 
     per_batch = math.ceil(int(samples_per_pixel) / batches)
-    gradients = np.zeros((batches, *grid.extinction.shape[1:]))
+    gradients = np.zeros((batches, *k.grid.extinction.shape[1:]))
     events = np.zeros(batches, dtype=np.int64)
     drt_batches(
-        grid, bank, cams, sun, scene.periodic, ground, rr_depth, rr_survival, seed, per_batch,
-        0, per_batch, residual, gradients, events,
+        k.grid, k.bank, k.cams, k.sun, k.periodic, k.ground, rr_depth, rr_survival, seed,
+        per_batch, 0, per_batch, residual, gradients, events,
     )
     batch_means = gradients / per_batch
     return batch_means.mean(axis=0), batch_means.std(axis=0, ddof=1) / math.sqrt(batches)

@@ -23,7 +23,7 @@ import xarray as xr
 
 from cloudct.mc.backend import forward_runner, resolve_backend
 from cloudct.mc.forward import GRADIENT
-from cloudct.mc.render import kernel_inputs, run_in_rounds
+from cloudct.mc.render import check_sampling, kernel_inputs, run_in_rounds
 from cloudct.mc.scene import Scene
 
 
@@ -62,8 +62,7 @@ def score_function_gradient(
     Returns ``(mean, std_error, info)`` with arrays over (x, y, z) and ``info`` holding the
     photon count, path vertices and wall time.
     """
-    if int(photons) < 1 or int(batches) < 2:
-        raise ValueError("photons must be positive and batches at least 2")
+    check_sampling(photons, batches, rr_depth, rr_survival)
     residual = check_residual(residual, scene)
     k = kernel_inputs(medium, scene)
     per_batch = math.ceil(int(photons) / batches)

@@ -110,12 +110,7 @@ def render_batches(
     attributes; :func:`render` averages them. Arguments as for :func:`render`."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    if int(photons) < 1:
-        raise ValueError(f"photons must be a positive count, got {photons}")
-    if int(batches) < 2:
-        raise ValueError(f"batches must be at least 2 for standard errors, got {batches}")
-    if not 0.0 < rr_survival <= 1.0 or rr_depth < 1:
-        raise ValueError("rr_survival must be in (0, 1] and rr_depth >= 1")
+    check_sampling(photons, batches, rr_depth, rr_survival)
     k = kernel_inputs(medium, scene)
     per_batch = math.ceil(int(photons) / batches)
     if client is not None:
@@ -150,6 +145,16 @@ def render_batches(
         backend=backend,
     )
     return images / per_batch, info
+
+
+def check_sampling(samples: int, batches: int, rr_depth: int, rr_survival: float) -> None:
+    """Refuse sample counts, batch counts and Russian-roulette settings that cannot work."""
+    if int(samples) < 1:
+        raise ValueError(f"photons (samples) must be a positive count, got {samples}")
+    if int(batches) < 2:
+        raise ValueError(f"batches must be at least 2 for standard errors, got {batches}")
+    if not 0.0 < rr_survival <= 1.0 or rr_depth < 1:
+        raise ValueError("rr_survival must be in (0, 1] and rr_depth >= 1")
 
 
 class KernelInputs(NamedTuple):
