@@ -97,6 +97,13 @@ for tpb in (1, 32):
         case["events"] = [runs[0][2]["events"], runs[1][2]["events"]]
         out[f"gradient/sort{int(sort)}/tpb{tpb}"] = case
 
+from cloudct.mc.drt import drt_gradient
+for tpb in (1, 32):
+    ck.THREADS_PER_BLOCK = tpb
+    runs = [drt_gradient(medium, scenes["open"], residual, samples_per_pixel=4, batches=4,
+                         backend=b) for b in ("cpu", "cuda")]
+    out[f"drt/tpb{tpb}"] = compare(runs[0][0], runs[1][0])
+
 # per photon: the RESIDUAL pass kernel against trace_photon called on the CPU
 k = kernel_inputs(medium, scenes["open"])
 nbatch, per_batch, first, count = 3, 40, 5, 30
@@ -148,6 +155,7 @@ cases = {
     "forward_gradient_kernel": (scene, *scalars, 0, 2, (residual, gradients, path_sum,
                                                         vertices, d)),
     "backward_kernel": (scene, *scalars, 0, 2, (images, events)),
+    "drt_kernel": (scene, *scalars, 0, 2, (residual, gradients, events)),
 }
 import nvidia.cuda_nvcc
 ptxas = os.path.join(list(nvidia.cuda_nvcc.__path__)[0], "bin", "ptxas")
@@ -253,7 +261,8 @@ def test_kernels_compile_for_a_gpu():
     result = run_script(PTX_SCRIPT, simulator=False)
     for name, info in result.items():
         assert info["ptxas_rc"] == 0, f"{name}: ptxas failed: {info['ptxas']}"
-    for name in ("forward_render_kernel", "forward_gradient_kernel", "backward_kernel"):
+    for name in ("forward_render_kernel", "forward_gradient_kernel", "backward_kernel",
+                 "drt_kernel"):
         assert "atom.global.add.f64" in result[name]["atomics"], result[name]
     assert "atom.global.add.f64" not in result["forward_residual_kernel"]["atomics"]
 
@@ -288,3 +297,13 @@ def test_sort_by_path_length_is_stable():
     order = sort_by_path_length(lengths)
     assert order.tolist() == [5, 1, 3, 2, 6, 0, 4]
     assert np.all(np.diff(lengths[order]) >= 0)
+
+
+@pytest.mark.parametrize("key", ["drt/tpb1", "drt/tpb32"])
+def test_drt_kernel_matches_cpu_to_rounding(simulated, key):
+    """The DRT kernel: the same samples as the CPU (same streams), summed in another order
+    (threads run pixel-major, the CPU sample-major per pixel): equal to float64 rounding."""
+    case = simulated[key]
+    cpu, gpu = np.array(case["cpu"]), np.array(case["gpu"])
+    assert case["scale"] > 0.0
+    np.testing.assert_allclose(gpu, cpu, rtol=1e-12, atol=1e-12 * case["scale"], err_msg=key)

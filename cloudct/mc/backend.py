@@ -110,6 +110,23 @@ def backward_runner(
     return _CPURunner(backward_batches, head, (images, events))
 
 
+def drt_runner(
+    backend: str, k, rr_depth: int, rr_survival: float, seed: int, per_batch: int,
+    residual: np.ndarray, gradients: np.ndarray, events: np.ndarray,
+):
+    """Runner of :func:`~cloudct.mc.drt.drt_batches` on ``backend``."""
+    if backend == "cuda":
+        from cloudct.mc.cuda_kernels import DRTLauncher
+
+        return DRTLauncher(k, rr_depth, rr_survival, seed, per_batch, residual, gradients,
+                           events)
+    from cloudct.mc.drt import drt_batches
+
+    head = (k.grid, k.bank, k.cams, k.sun, k.periodic, k.ground, rr_depth, rr_survival, seed,
+            per_batch)
+    return _CPURunner(drt_batches, head, (residual, gradients, events))
+
+
 def sort_by_path_length(lengths: np.ndarray) -> np.ndarray:
     """Indices that order paths by length (vertex or record count), stable: paths of equal
     length keep their order. Re-tracing (or replaying) paths in this order gives the threads

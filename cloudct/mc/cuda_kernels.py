@@ -25,6 +25,7 @@ compiled code cannot take). Under the simulator the "device" arrays are host arr
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from typing import NamedTuple
 
 import numpy as np
@@ -33,6 +34,7 @@ from numba import config, cuda
 from cloudct.mc.accumulate import add_to, register_cuda_implementation
 from cloudct.mc.backend import sort_by_path_length
 from cloudct.mc.backward import trace_pixel_sample
+from cloudct.mc.drt import drt_pixel_sample
 from cloudct.mc.forward import GRADIENT, RENDER, RESIDUAL, trace_photon
 
 register_cuda_implementation()
@@ -157,6 +159,40 @@ def backward_kernel(
     cuda.atomic.add(events, b, vertices)
 
 
+@cuda.jit
+def drt_kernel(
+    scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, out
+):
+    """DRT samples ``first .. first + count - 1`` of every pixel and batch, with the sample
+    indices of :func:`cloudct.mc.drt.drt_batches`: out = (residual[view, row, col],
+    gradients[nbatch, nx, ny, nz], events[nbatch])."""
+    residual, gradients, events = out
+    nbatch = gradients.shape[0]
+    nrows = residual.shape[1]
+    ncols = residual.shape[2]
+    npix = residual.shape[0] * nrows * ncols
+    t = cuda.grid(1)
+    if t >= npix * nbatch * count:
+        return
+    pixel = t % npix
+    rest = t // npix
+    b = rest % nbatch
+    k = first + rest // nbatch
+    view = pixel // (nrows * ncols)
+    row = (pixel // ncols) % nrows
+    col = pixel % ncols
+    r = residual[view, row, col]
+    if r == 0.0:
+        return
+    index = (pixel * nbatch + b) * per_batch + k
+    mis_length = scene.grid.z_edges[scene.grid.z_edges.size - 1] - scene.grid.z_edges[0]
+    vertices = drt_pixel_sample(
+        scene.grid, scene.bank, scene.cams, scene.sun, periodic, ground, rr_depth,
+        rr_survival, seed, index, view, row, col, r, gradients[b], mis_length,
+    )
+    cuda.atomic.add(events, b, vertices)
+
+
 # --------------------------------------------------------------------------------------
 # Host side
 # --------------------------------------------------------------------------------------
@@ -219,7 +255,7 @@ def _launch(kernel, nthreads: int, threads_per_block: int, *args) -> None:
     kernel[blocks, threads_per_block](*args)
 
 
-class _Launcher:
+class _Launcher(ABC):
     """Calls ``run(first, last)`` of :func:`cloudct.mc.render.run_in_rounds`: photons
     ``first .. last - 1`` of every batch, in launches of at most ``chunk`` per batch. The
     outputs stay on the device until the round that ends at ``per_batch``, which copies
@@ -242,11 +278,13 @@ class _Launcher:
         if last == self.per_batch:
             self.finish()
 
+    @abstractmethod
     def launch(self, first: int, count: int) -> None:
-        raise NotImplementedError
+        """Launch the kernel for samples ``first .. first + count - 1`` of every batch."""
 
+    @abstractmethod
     def finish(self) -> None:
-        raise NotImplementedError
+        """Copy the device outputs into the caller's host arrays."""
 
 
 class ForwardLauncher(_Launcher):
@@ -344,3 +382,34 @@ class BackwardLauncher(_Launcher):
         images += to_host(self.images)
         events += to_host(self.events)
 
+
+
+class DRTLauncher(_Launcher):
+    """The CUDA counterpart of :func:`cloudct.mc.drt.drt_batches`."""
+
+    def __init__(
+        self, k, rr_depth, rr_survival, seed, per_batch, residual, gradients, events, *,
+        threads_per_block: int | None = None,
+    ):
+        self.scene = device_scene(k)
+        self.scalars = (k.periodic, k.ground, rr_depth, rr_survival, seed, per_batch)
+        self.per_batch = per_batch
+        self.host = (gradients, events)
+        self.tpb = threads_per_block or THREADS_PER_BLOCK
+        self.nbatch = gradients.shape[0]
+        _check_fits(gradients.nbytes, "the per-batch gradients")
+        self.residual = to_device(residual)
+        self.gradients = device_zeros(gradients.shape)
+        self.events = device_zeros(self.nbatch, np.int64)
+        self.npix = int(residual.size)
+        self.chunk = max(1, MAX_LAUNCH // (self.npix * self.nbatch))
+
+    def launch(self, first: int, count: int) -> None:
+        n = self.npix * self.nbatch * count
+        _launch(drt_kernel, n, self.tpb, self.scene, *self.scalars, first, count,
+                (self.residual, self.gradients, self.events))
+
+    def finish(self) -> None:
+        gradients, events = self.host
+        gradients += to_host(self.gradients)
+        events += to_host(self.events)

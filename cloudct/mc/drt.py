@@ -133,11 +133,12 @@ import xarray as xr
 from numba import njit, prange
 
 from cloudct.mc.accumulate import add_to
+from cloudct.mc.backend import drt_runner, resolve_backend
 from cloudct.mc.cameras import pixel_ray
 from cloudct.mc.events import lambertian_bounce, russian_roulette, scatter
 from cloudct.mc.gradient import check_residual
 from cloudct.mc.random import DOMAIN_DRT, stream_start, uniform
-from cloudct.mc.render import check_sampling, kernel_inputs
+from cloudct.mc.render import check_sampling, kernel_inputs, run_in_rounds
 from cloudct.mc.scene import Scene
 from cloudct.mc.traversal import (
     BOTTOM,
@@ -444,6 +445,8 @@ def drt_gradient(
     batches: int = 32,
     rr_depth: int = 100,
     rr_survival: float = 0.95,
+    progress: bool | None = False,
+    backend: str = "cpu",
 ) -> tuple[np.ndarray, np.ndarray]:
     """sum_d residual_d dI_d / d(cloud extinction) per voxel, by differential ratio tracking.
 
@@ -473,9 +476,11 @@ def drt_gradient(
     per_batch = math.ceil(int(samples_per_pixel) / batches)
     gradients = np.zeros((batches, *k.grid.extinction.shape[1:]))
     events = np.zeros(batches, dtype=np.int64)
-    drt_batches(
-        k.grid, k.bank, k.cams, k.sun, k.periodic, k.ground, rr_depth, rr_survival, seed,
-        per_batch, 0, per_batch, residual, gradients, events,
+    run = drt_runner(
+        resolve_backend(backend), k, rr_depth, rr_survival, seed, per_batch, residual,
+        gradients, events,
     )
+    run_in_rounds(run, per_batch, batches, progress, unit="sample/px", desc="DRT",
+                  max_rounds=run.max_rounds)
     batch_means = gradients / per_batch
     return batch_means.mean(axis=0), batch_means.std(axis=0, ddof=1) / math.sqrt(batches)
