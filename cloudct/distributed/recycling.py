@@ -18,11 +18,9 @@ workers or parts.
 
 :class:`DistributedRecycler` is :class:`~cloudct.recycling.Recycler` on such stores.
 
-Interim: :func:`record_part` re-implements :func:`~cloudct.recycling.store.record_paths`
-for a range of batches (two small kernels that offset the photon index), and
-:class:`DistributedRecycler` ports :meth:`Recycler.evaluate`; both go once
-``record_paths`` takes a batch range and ``Recycler`` routes its store operations through
-overridable methods (see docs/distributed.md, "Recycling").
+:func:`record_part` is :func:`~cloudct.recycling.store.record_paths` on a range of batches;
+:class:`DistributedRecycler` overrides only the store operations of
+:class:`~cloudct.recycling.Recycler`.
 """
 
 from __future__ import annotations
@@ -34,170 +32,37 @@ from collections.abc import Callable
 
 import numpy as np
 import xarray as xr
-from numba import njit, prange
 
 from cloudct.distributed.core import DistributedError, executor, nbytes
-from cloudct.mc.forward import COUNT, GRADIENT, RECORD, PathRecord, trace_photon
 from cloudct.mc.gradient import check_residual
-from cloudct.mc.render import images_dataset, kernel_inputs
+from cloudct.mc.render import kernel_inputs
 from cloudct.mc.scene import Scene
 from cloudct.medium import cell_edges
-from cloudct.recycling import recycler as _recycler
-from cloudct.recycling.kernels import (
-    StoreArrays,
-    flat_total_extinction,
-    measure_segments,
-    reference_terms,
-    write_crossings,
+from cloudct.recycling.recycler import Evaluation, Recycler
+from cloudct.recycling.replay import (
+    correction_log_weights,
+    effective_sample_size,
+    replay_batch_gradients,
+    replay_images,
 )
-from cloudct.recycling.recycler import STORES, Evaluation, Recycler, store_seed
-from cloudct.recycling.replay import correction_log_weights, effective_sample_size, replay_images
-from cloudct.recycling.store import (
-    STORAGE,
-    MemoryBudgetError,
-    PathStore,
-    check_same_grid,
-    crossings_bytes,
-    lean_bytes,
-    sort_paths,
-    voxel_dtype,
-)
+from cloudct.recycling.store import STORAGE, PathStore, check_same_grid, record_paths
 
 # ------------------------------------------------------------------------------------------
 # Worker side: recording a range of batches, re-evaluating it
 # ------------------------------------------------------------------------------------------
 
 
-@njit(parallel=True, cache=True)
-def count_records_part(
-    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
-    per_batch, first_photon, counts,
-):
-    """counts[j] = records of photon ``first_photon + j`` (j over the part's photons)."""
-    nbatch = counts.size // per_batch
-    image = np.zeros((1, 1, 1))
-    for b in prange(nbatch):
-        for k in range(per_batch):
-            j = b * per_batch + k
-            counts[j] = trace_photon(
-                grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
-                seed, first_photon + j, COUNT, image, image, image, 0.0,
-            )[0]
-
-
-@njit(parallel=True, cache=True)
-def write_records_part(
-    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
-    per_batch, first_photon, path_start, record,
-):
-    """Trace the part's photons again and write their records (rows from path_start)."""
-    nbatch = (path_start.size - 1) // per_batch
-    image = np.zeros((1, 1, 1))
-    for b in prange(nbatch):
-        for k in range(per_batch):
-            j = b * per_batch + k
-            trace_photon(
-                grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
-                seed, first_photon + j, RECORD, image, image, image, 0.0, record, path_start[j],
-            )
-
-
 def record_part(
     medium: xr.Dataset, scene: Scene, *, seed: int, per_batch: int, start: int, count: int,
-    storage: str = "auto", memory_budget: float | None = None, sort: bool = True,
-    rr_depth: int = 100, rr_survival: float = 0.95,
+    **kwargs,
 ) -> PathStore:
     """The paths of batches ``start .. start + count - 1`` of
     :func:`~cloudct.recycling.store.record_paths` (same seed, same ``per_batch``) as a
-    store of ``count`` batches: the same records, computed the same way."""
-    if storage not in STORAGE:
-        raise ValueError(f"storage must be one of {STORAGE}, got {storage!r}")
-    start_time = time.perf_counter()
-    k = kernel_inputs(medium, scene)
-    vdtype = voxel_dtype(k.grid.extinction.shape[1:])
-    vsize = np.dtype(vdtype).itemsize
-    npaths = per_batch * count
-    run_args = (
-        k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, rr_depth, rr_survival,
-        int(seed), per_batch, start * per_batch,
+    store of ``count`` batches (the other arguments as ``record_paths``)."""
+    return record_paths(
+        medium, scene, photons=per_batch * (start + count), seed=seed, batches=start + count,
+        first_batch=start, nbatch=count, **kwargs,
     )
-    counts = np.zeros(npaths, dtype=np.int64)
-    count_records_part(*run_args, counts)
-    path_start = np.zeros(npaths + 1, dtype=np.int64)
-    np.cumsum(counts, out=path_start[1:])
-    nrec = int(path_start[-1])
-    lean = lean_bytes(nrec, npaths, vsize)
-    if memory_budget is not None and lean > memory_budget:
-        raise MemoryBudgetError(
-            f"memory_budget share of {memory_budget / 2**20:.3g} MiB for batches {start}.."
-            f"{start + count - 1} cannot hold their paths (lean storage needs "
-            f"{lean / 2**20:.3g} MiB)"
-        )
-    record = PathRecord(
-        position=np.empty((3, nrec)),
-        direction=np.empty((3, nrec)),
-        optical_depth=np.empty(nrec),
-        kind=np.empty(nrec, dtype=np.int8),
-        voxel=np.empty(nrec, dtype=vdtype),
-    )
-    write_records_part(*run_args, path_start, record)
-    empty_cross = (np.zeros(1, np.int64), np.zeros(0, vdtype), np.zeros(0))
-    arrays = StoreArrays(
-        path_start, np.arange(npaths, dtype=np.int64), record.position, record.direction,
-        record.optical_depth, record.kind, record.voxel, np.empty(nrec), np.empty(nrec),
-        *empty_cross,
-    )
-    count_crossings = storage != "lean"
-    crossings_per_record = np.zeros(nrec, dtype=np.int64)
-    measure_segments(
-        k.grid, arrays, arrays.length, k.periodic, per_batch, count_crossings,
-        crossings_per_record,
-    )
-    chosen = "lean"
-    if count_crossings:
-        ncross = int(crossings_per_record.sum())
-        full = lean + crossings_bytes(nrec, ncross, vsize)
-        fits = memory_budget is None or full <= memory_budget
-        if storage == "crossings" and not fits:
-            raise MemoryBudgetError(
-                f"memory_budget share of {memory_budget / 2**20:.3g} MiB cannot hold the "
-                f"crossings of batches {start}..{start + count - 1} ({full / 2**20:.3g} MiB)"
-            )
-        if fits:
-            chosen = "crossings"
-            crossing_start = np.zeros(nrec + 1, dtype=np.int64)
-            np.cumsum(crossings_per_record, out=crossing_start[1:])
-            del crossings_per_record
-            arrays = arrays._replace(
-                crossing_start=crossing_start,
-                crossing_voxel=np.empty(ncross, dtype=vdtype),
-                crossing_length=np.empty(ncross),
-            )
-            bad = write_crossings(k.grid, arrays, k.periodic, per_batch)
-            if bad:
-                raise RuntimeError(f"{bad} segments crossed a different number of voxels")
-    beta = flat_total_extinction(k.grid)
-    reference_terms(
-        k.grid, k.bank, beta, arrays, chosen == "crossings", k.periodic, per_batch,
-        arrays.seg_ref, arrays.dir_ref,
-    )
-    store = PathStore(
-        arrays=arrays,
-        photon=np.arange(npaths, dtype=np.int64),
-        scene=scene,
-        edges=tuple(np.array(e, dtype=float) for e in k.edges),
-        seed=int(seed),
-        batches=int(count),
-        per_batch=per_batch,
-        rr_depth=int(rr_depth),
-        rr_survival=float(rr_survival),
-        storage=chosen,
-        info={"record_time": 0.0, "memory_budget": memory_budget, "first_batch": start},
-    )
-    if sort:
-        store = sort_paths(store)
-    store.info["record_time"] = time.perf_counter() - start_time
-    return store
 
 
 def part_summary(store: PathStore) -> dict:
@@ -221,12 +86,9 @@ def part_replay(store: PathStore, medium: xr.Dataset, residual) -> tuple:
     _fault("replay", store.info.get("first_batch", 0))
     if residual is None:
         values, info = replay_images(store, medium)
-        return values, info["log_r"], info["events"], info["wall_time"]
-    from cloudct.recycling.replay import _replay
-
-    residual = check_residual(residual, store.scene)
-    values, log_r, info = _replay(store, medium, GRADIENT, residual, False, "recycled gradient")
-    return values, log_r, info["events"], info["wall_time"]
+    else:
+        values, info = replay_batch_gradients(store, medium, residual)
+    return values, info["log_r"], info["events"], info["wall_time"]
 
 
 # ------------------------------------------------------------------------------------------
@@ -432,115 +294,49 @@ class DistributedRecycler(Recycler):
         self.executor = executor(client)
         self._moved = [0, 0]  # bytes to and from the workers in the current evaluation
 
-    def resample(self, medium: xr.Dataset, which: tuple[str, ...] = STORES) -> None:
-        """Record new paths under ``medium`` on the workers for the named stores."""
-        for name in which:
-            slot = self._slots[name]
-            if slot.store is not None:
-                slot.store.release()
-            slot.store = None
-            slot.store = DistributedPathStore.record(
-                self.executor, medium, self.scene, photons=slot.photons,
-                seed=store_seed(self.seed, slot.generation, STORES.index(name)),
-                batches=self.batches, storage=self.storage, memory_budget=self._budget(name),
-                sort=self.sort, rr_depth=self.rr_depth, rr_survival=self.rr_survival,
-            )
-            self._moved[0] += slot.store.info["bytes_to_workers"]
-            slot.generation += 1
-            slot.age = 0
+    # the store operations of Recycler.evaluate, on the distributed stores
+
+    def _release_store(self, store) -> None:
+        if store is not None:
+            store.release()
+
+    def _record_store(
+        self, medium: xr.Dataset, *, photons: int, seed: int, memory_budget: float | None
+    ) -> DistributedPathStore:
+        store = DistributedPathStore.record(
+            self.executor, medium, self.scene, photons=photons, seed=seed,
+            batches=self.batches, storage=self.storage, memory_budget=memory_budget,
+            sort=self.sort, rr_depth=self.rr_depth, rr_survival=self.rr_survival,
+        )
+        self._moved[0] += store.info["bytes_to_workers"]
+        return store
+
+    def _log_weights(self, store, medium: xr.Dataset) -> np.ndarray:
+        log_r, moved = store.log_weights(medium)
+        self._count(moved)
+        return log_r
+
+    def _replay_images(self, store, medium: xr.Dataset) -> tuple[np.ndarray, dict]:
+        values, info = store.replay_images(medium)
+        self._count(info)
+        return values, info
+
+    def _replay_gradient(self, store, medium: xr.Dataset, residual: np.ndarray) -> tuple:
+        mean, std_error, info = store.replay_gradient(medium, residual)
+        self._count(info)
+        return mean, std_error, info
+
+    def _extra_info(self) -> dict:
+        return {"bytes_to_workers": self._moved[0], "bytes_from_workers": self._moved[1]}
 
     def evaluate(
         self,
         medium: xr.Dataset,
         residual: Callable[[xr.Dataset], np.ndarray] | np.ndarray | None = None,
     ) -> Evaluation:
-        """As :meth:`cloudct.recycling.Recycler.evaluate` (a port of it that calls the
-        distributed store's operations)."""
-        start = time.perf_counter()
+        """As :meth:`cloudct.recycling.Recycler.evaluate`, counting the bytes moved."""
         self._moved = [0, 0]
-        edges = cell_edges(medium)
-        for slot in self._slots.values():
-            if slot.store is not None:
-                check_same_grid(slot.store, edges)
-        needed = ("images",) if residual is None else STORES
-        reasons: dict[str, str | None] = {}
-        checked: dict[str, dict] = {}
-        record_time = 0.0
-        for name in needed:
-            slot = self._slots[name]
-            if slot.store is None:
-                reason = "initial"
-            else:
-                ess = max_log_r = None
-                if self.policy.uses_ess:
-                    log_r, moved = slot.store.log_weights(medium)
-                    self._count(moved)
-                    ess = effective_sample_size(log_r) / slot.store.paths
-                    max_log_r = float(log_r.max())
-                    checked[name] = {"ess_fraction": ess, "max_ratio": math.exp(max_log_r)}
-                reason = self.policy.resample_reason(slot.age, ess, max_log_r)
-            if reason is not None:
-                t0 = time.perf_counter()
-                self.resample(medium, (name,))
-                record_time += time.perf_counter() - t0
-            reasons[name] = reason
-
-        store = self._slots["images"].store
-        batch_images, image_info = store.replay_images(medium)
-        self._count(image_info)
-        images = images_dataset(
-            batch_images.mean(axis=0),
-            batch_images.std(axis=0, ddof=1) / math.sqrt(store.batches),
-            self.scene,
-            method="forward-recycled",
-            photons=store.paths,
-            seed=store.seed,
-            batches=store.batches,
-            events=image_info["events"],
-            wall_time=image_info["wall_time"],
-            rr_depth=store.rr_depth,
-            rr_survival=store.rr_survival,
-            storage=store.storage,
-            ess_fraction=image_info["ess_fraction"],
-        )
-        weights = gradient = gradient_se = None
-        gradient_info: dict = {}
-        if residual is not None:
-            weights = residual(images) if callable(residual) else residual
-            gradient, gradient_se, gradient_info = self._slots["gradient"].store.replay_gradient(
-                medium, weights
-            )
-            self._count(gradient_info)
-        for name in needed:
-            self._slots[name].age += 1
-        info = {
-            "iteration": self.iteration,
-            "resampled": any(r is not None for r in reasons.values()),
-            "reasons": reasons,
-            "ess_images": image_info["ess_fraction"],
-            "ess_gradient": gradient_info.get("ess_fraction"),
-            "checked": checked,
-            "age": {name: self._slots[name].age for name in needed},
-            "record_time": record_time,
-            "images_time": image_info["wall_time"],
-            "gradient_time": gradient_info.get("wall_time", 0.0),
-            "bytes": self.nbytes,
-            "bytes_to_workers": self._moved[0],
-            "bytes_from_workers": self._moved[1],
-        }
-        fractions = [f for f in (info["ess_images"], info["ess_gradient"]) if f is not None]
-        info["ess_fraction"] = min(fractions)
-        info["wall_time"] = time.perf_counter() - start
-        self.log.append(info)
-        _recycler.logger.info(
-            "distributed recycling iteration %d: %s, ESS fraction %.3f, ages %s, %.2f s",
-            self.iteration,
-            "resampled (" + ", ".join(f"{k}: {v}" for k, v in reasons.items() if v) + ")"
-            if info["resampled"] else "recycled",
-            info["ess_fraction"], info["age"], info["wall_time"],
-        )
-        self.iteration += 1
-        return Evaluation(images, weights, gradient, gradient_se, info)
+        return super().evaluate(medium, residual)
 
     def _count(self, info: dict) -> None:
         self._moved[0] += info.get("bytes_to_workers", 0)
@@ -550,8 +346,6 @@ class DistributedRecycler(Recycler):
 __all__ = [
     "DistributedPathStore",
     "DistributedRecycler",
-    "count_records_part",
     "part_replay",
     "record_part",
-    "write_records_part",
 ]

@@ -6,6 +6,7 @@ from cloudct.recycling.recycler import Evaluation, Recycler
 from cloudct.recycling.replay import (
     correction_log_weights,
     effective_sample_size,
+    replay_batch_gradients,
     replay_gradient,
     replay_images,
     replay_render,
@@ -22,6 +23,7 @@ __all__ = [
     "correction_log_weights",
     "effective_sample_size",
     "record_paths",
+    "replay_batch_gradients",
     "replay_gradient",
     "replay_images",
     "replay_render",

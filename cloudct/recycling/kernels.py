@@ -361,9 +361,10 @@ def reference_terms(grid, bank, beta, S, use_crossings, periodic, per_batch, seg
 @njit(parallel=True, cache=True)
 def count_records(
     grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
-    per_batch, first, last, counts,
+    per_batch, first_photon, first, last, counts,
 ):
-    """Records of photons ``b * per_batch + k`` (k in first .. last - 1) into counts."""
+    """Records of photons ``first_photon + b * per_batch + k`` (k in first .. last - 1)
+    into counts[b * per_batch + k]."""
     nbatch = counts.size // per_batch
     image = np.zeros((1, 1, 1))
     for b in prange(nbatch):
@@ -371,14 +372,14 @@ def count_records(
             i = b * per_batch + k
             counts[i] = trace_photon(
                 grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
-                seed, i, COUNT, image, image, image, 0.0,
+                seed, first_photon + i, COUNT, image, image, image, 0.0,
             )[0]
 
 
 @njit(parallel=True, cache=True)
 def write_records(
     grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
-    per_batch, first, last, path_start, record,
+    per_batch, first_photon, first, last, path_start, record,
 ):
     """Trace the same photons again and write their records (rows from path_start)."""
     nbatch = (path_start.size - 1) // per_batch
@@ -388,7 +389,7 @@ def write_records(
             i = b * per_batch + k
             trace_photon(
                 grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
-                seed, i, RECORD, image, image, image, 0.0, record, path_start[i],
+                seed, first_photon + i, RECORD, image, image, image, 0.0, record, path_start[i],
             )
 
 

@@ -34,13 +34,13 @@ from typing import NamedTuple
 import numpy as np
 import xarray as xr
 
-from cloudct.mc.render import images_dataset
 from cloudct.mc.scene import Scene
 from cloudct.medium import cell_edges
 from cloudct.recycling.policy import AdaptiveESS, Policy
 from cloudct.recycling.replay import (
     correction_log_weights,
     effective_sample_size,
+    recycled_images,
     replay_gradient,
     replay_images,
 )
@@ -173,16 +173,42 @@ class Recycler:
         """Record new paths under ``medium`` (the new reference) for the named stores."""
         for name in which:
             slot = self._slots[name]
-            slot.store = None  # release the old paths before recording new ones
-            slot.store = record_paths(
-                medium, self.scene, photons=slot.photons,
+            self._release_store(slot.store)  # release the old paths before recording new ones
+            slot.store = None
+            slot.store = self._record_store(
+                medium, photons=slot.photons,
                 seed=store_seed(self.seed, slot.generation, STORES.index(name)),
-                batches=self.batches, storage=self.storage, memory_budget=self._budget(name),
-                sort=self.sort, rr_depth=self.rr_depth, rr_survival=self.rr_survival,
-                progress=self.progress,
+                memory_budget=self._budget(name),
             )
             slot.generation += 1
             slot.age = 0
+
+    # -- the store operations (overridden where the stores live elsewhere) -----------------
+
+    def _record_store(
+        self, medium: xr.Dataset, *, photons: int, seed: int, memory_budget: float | None
+    ) -> PathStore:
+        return record_paths(
+            medium, self.scene, photons=photons, seed=seed, batches=self.batches,
+            storage=self.storage, memory_budget=memory_budget, sort=self.sort,
+            rr_depth=self.rr_depth, rr_survival=self.rr_survival, progress=self.progress,
+        )
+
+    def _release_store(self, store) -> None:
+        """Free a store about to be replaced (None: none yet; here dropping it is enough)."""
+
+    def _log_weights(self, store, medium: xr.Dataset) -> np.ndarray:
+        return correction_log_weights(store, medium)
+
+    def _replay_images(self, store, medium: xr.Dataset) -> tuple[np.ndarray, dict]:
+        return replay_images(store, medium, self.progress)
+
+    def _replay_gradient(self, store, medium: xr.Dataset, residual: np.ndarray) -> tuple:
+        return replay_gradient(store, medium, residual, self.progress)
+
+    def _extra_info(self) -> dict:
+        """Entries that an evaluation's info adds (none here)."""
+        return {}
 
     # -- the call of every iteration ----------------------------------------------------
 
@@ -215,7 +241,7 @@ class Recycler:
             else:
                 ess = max_log_r = None
                 if self.policy.uses_ess:
-                    log_r = correction_log_weights(slot.store, medium)
+                    log_r = self._log_weights(slot.store, medium)
                     ess = effective_sample_size(log_r) / slot.store.paths
                     max_log_r = float(log_r.max())
                     checked[name] = {"ess_fraction": ess, "max_ratio": math.exp(max_log_r)}
@@ -227,28 +253,14 @@ class Recycler:
             reasons[name] = reason
 
         store = self._slots["images"].store
-        batch_images, image_info = replay_images(store, medium, self.progress)
-        images = images_dataset(
-            batch_images.mean(axis=0),
-            batch_images.std(axis=0, ddof=1) / math.sqrt(store.batches),
-            self.scene,
-            method="forward-recycled",
-            photons=store.paths,
-            seed=store.seed,
-            batches=store.batches,
-            events=image_info["events"],
-            wall_time=image_info["wall_time"],
-            rr_depth=store.rr_depth,
-            rr_survival=store.rr_survival,
-            storage=store.storage,
-            ess_fraction=image_info["ess_fraction"],
-        )
+        batch_images, image_info = self._replay_images(store, medium)
+        images = recycled_images(store, batch_images, image_info)
         weights = gradient = gradient_se = None
         gradient_info: dict = {}
         if residual is not None:
             weights = residual(images) if callable(residual) else residual
-            gradient, gradient_se, gradient_info = replay_gradient(
-                self._slots["gradient"].store, medium, weights, self.progress
+            gradient, gradient_se, gradient_info = self._replay_gradient(
+                self._slots["gradient"].store, medium, weights
             )
         for name in needed:
             self._slots[name].age += 1
@@ -264,6 +276,7 @@ class Recycler:
             "images_time": image_info["wall_time"],
             "gradient_time": gradient_info.get("wall_time", 0.0),
             "bytes": self.nbytes,
+            **self._extra_info(),
         }
         fractions = [f for f in (info["ess_images"], info["ess_gradient"]) if f is not None]
         info["ess_fraction"] = min(fractions)

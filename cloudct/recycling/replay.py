@@ -5,7 +5,8 @@
 - :func:`effective_sample_size`: (sum r)^2 / sum r^2 over the paths.
 - :func:`replay_images`: the images of M_t (Eq. 52), per batch, from the stored paths.
 - :func:`replay_gradient`: the residual-weighted score-function gradient of M_t (Eq. 53),
-  with respect to the cloud extinction of every voxel (albedo and phase fixed).
+  with respect to the cloud extinction of every voxel (albedo and phase fixed);
+  :func:`replay_batch_gradients`: the same per batch.
 
 Each local estimate uses the correction factor of its path's prefix (the segments up to
 the event and the directions sampled before it), unbiased like the whole-path factor and
@@ -123,8 +124,12 @@ def replay_render(
 ) -> xr.Dataset:
     """Images of ``medium`` from the stored paths as an images Dataset (radiance and its
     standard error over batches), like :func:`cloudct.mc.render.render`."""
-    batch_images, info = replay_images(store, medium, progress)
-    info.pop("log_r")
+    return recycled_images(store, *replay_images(store, medium, progress))
+
+
+def recycled_images(store, batch_images: np.ndarray, info: dict) -> xr.Dataset:
+    """The images Dataset of per-batch images and the info of :func:`replay_images` (or of
+    a store with the same attributes and method)."""
     return images_dataset(
         batch_images.mean(axis=0),
         batch_images.std(axis=0, ddof=1) / math.sqrt(store.batches),
@@ -142,6 +147,22 @@ def replay_render(
     )
 
 
+def replay_batch_gradients(
+    store: PathStore,
+    medium: xr.Dataset,
+    residual: np.ndarray,
+    progress: bool | None = False,
+) -> tuple[np.ndarray, dict]:
+    """The gradient of :func:`replay_gradient` per batch: float64[batches, x, y, z] (batch
+    means) and run information with ``log_r`` per path, like :func:`replay_images`."""
+    residual = check_residual(residual, store.scene)
+    batch_means, log_r, info = _replay(
+        store, medium, GRADIENT, residual, progress, "recycled gradient"
+    )
+    info["log_r"] = log_r
+    return batch_means, info
+
+
 def replay_gradient(
     store: PathStore,
     medium: xr.Dataset,
@@ -151,11 +172,7 @@ def replay_gradient(
     """sum_d residual_d dI_d / d beta_cloud per voxel under ``medium`` from the stored paths
     (Eq. 53 with the path score function of Eqs. 44-49). Returns ``(mean, std_error,
     info)`` like :func:`cloudct.mc.gradient.score_function_gradient`."""
-    residual = check_residual(residual, store.scene)
-    batch_means, log_r, info = _replay(
-        store, medium, GRADIENT, residual, progress, "recycled gradient"
-    )
-    info["log_r"] = log_r
+    batch_means, info = replay_batch_gradients(store, medium, residual, progress)
     return (
         batch_means.mean(axis=0),
         batch_means.std(axis=0, ddof=1) / math.sqrt(store.batches),

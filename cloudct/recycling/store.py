@@ -182,6 +182,8 @@ def record_paths(
     rr_depth: int = 100,
     rr_survival: float = 0.95,
     progress: bool | None = False,
+    first_batch: int = 0,
+    nbatch: int | None = None,
 ) -> PathStore:
     """Sample ``photons`` forward paths under ``medium`` (the reference) and store them.
 
@@ -190,13 +192,24 @@ def record_paths(
     (bytes, None for no limit) bounds the store; ``storage`` is ``"auto"``,
     ``"crossings"`` or ``"lean"``. A budget that cannot hold the paths raises
     :class:`MemoryBudgetError`.
+
+    ``first_batch`` and ``nbatch`` (default: all) record only batches ``first_batch ..
+    first_batch + nbatch - 1`` of the ``batches``: the same paths, as a store of ``nbatch``
+    batches (photon ``first_batch * per_batch + j`` at storage index j). With ``nbatch``
+    given, the store is a part of a larger recording and may be a single batch.
     """
+    whole = nbatch is None
+    nbatch = int(batches) - int(first_batch) if whole else int(nbatch)
     if storage not in STORAGE:
         raise ValueError(f"storage must be one of {STORAGE}, got {storage!r}")
     if int(photons) < 1:
         raise ValueError(f"photons must be a positive count, got {photons}")
-    if int(batches) < 2:
+    if whole and int(batches) < 2:
         raise ValueError(f"batches must be at least 2 for standard errors, got {batches}")
+    if not (0 <= int(first_batch) and 1 <= nbatch and int(first_batch) + nbatch <= batches):
+        raise ValueError(
+            f"batches {first_batch}..{first_batch + nbatch - 1} are not among the {batches}"
+        )
     if not 0.0 < rr_survival <= 1.0 or rr_depth < 1:
         raise ValueError("rr_survival must be in (0, 1] and rr_depth >= 1")
     if memory_budget is not None and not memory_budget > 0:
@@ -207,10 +220,11 @@ def record_paths(
     vdtype = voxel_dtype(shape)
     vsize = np.dtype(vdtype).itemsize
     per_batch = math.ceil(int(photons) / batches)
+    batches = nbatch  # from here on, the batches of this store
     npaths = per_batch * batches
     run_args = (
         k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, rr_depth, rr_survival,
-        int(seed), per_batch,
+        int(seed), per_batch, int(first_batch) * per_batch,
     )
 
     # pass 1: records per path, CSR offsets
@@ -289,7 +303,9 @@ def record_paths(
         rr_depth=int(rr_depth),
         rr_survival=float(rr_survival),
         storage=chosen,
-        info={"record_time": 0.0, "memory_budget": memory_budget},
+        info={
+            "record_time": 0.0, "memory_budget": memory_budget, "first_batch": int(first_batch),
+        },
     )
     if sort:
         store = sort_paths(store)
