@@ -39,6 +39,31 @@ INV_PI = 1.0 / math.pi
 
 
 @njit(cache=True)
+def camera_ray_entry(grid, cams, periodic, view, row, col, state):
+    """Start of a backward path: the ray from the pinhole through a uniform point of pixel
+    (view, row, col), taken to where it enters the medium (with periodic boundaries,
+    folded into the box).
+
+    Returns ``(hit, px, py, pz, ux, uy, uz, ix, iy, iz, state)``; ``hit`` is False when
+    the ray misses the medium.
+    """
+    xi_u, state = uniform(state)
+    xi_v, state = uniform(state)
+    ux, uy, uz = pixel_ray(cams, view, row, col, xi_u, xi_v)
+    ox = cams.position[view, 0]
+    oy = cams.position[view, 1]
+    oz = cams.position[view, 2]
+    t = ray_box_entry(grid, ox, oy, oz, ux, uy, uz, periodic)
+    if t < 0.0:
+        return False, ox, oy, oz, ux, uy, uz, 0, 0, 0, state
+    px, py, pz = ox + t * ux, oy + t * uy, oz + t * uz
+    if periodic:
+        px, py = wrap_into_box(grid, px, py)
+    ix, iy, iz = locate_point(grid, px, py, pz, ux, uy, uz)
+    return True, px, py, pz, ux, uy, uz, ix, iy, iz, state
+
+
+@njit(cache=True)
 def trace_pixel_sample(
     grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, index, view,
     row, col,
@@ -48,19 +73,11 @@ def trace_pixel_sample(
     Returns ``(radiance, vertices)``; ``ground_albedo < 0`` means no ground.
     """
     state = stream_start(seed, DOMAIN_BACKWARD, index)
-    xi_u, state = uniform(state)
-    xi_v, state = uniform(state)
-    ux, uy, uz = pixel_ray(cams, view, row, col, xi_u, xi_v)
-    ox = cams.position[view, 0]
-    oy = cams.position[view, 1]
-    oz = cams.position[view, 2]
-    t = ray_box_entry(grid, ox, oy, oz, ux, uy, uz, periodic)
-    if t < 0.0:
+    hit, px, py, pz, ux, uy, uz, ix, iy, iz, state = camera_ray_entry(
+        grid, cams, periodic, view, row, col, state
+    )
+    if not hit:
         return 0.0, 0
-    px, py, pz = ox + t * ux, oy + t * uy, oz + t * uz
-    if periodic:
-        px, py = wrap_into_box(grid, px, py)
-    ix, iy, iz = locate_point(grid, px, py, pz, ux, uy, uz)
     sx, sy, sz = -sun.direction[0], -sun.direction[1], -sun.direction[2]  # towards the sun
     radiance = 0.0
     throughput = 1.0

@@ -29,7 +29,7 @@ from abc import ABC, abstractmethod
 from typing import NamedTuple
 
 import numpy as np
-from numba import config, cuda
+from numba import config, cuda, njit
 
 from cloudct.mc.accumulate import add_to, register_cuda_implementation
 from cloudct.mc.backend import sort_by_path_length
@@ -129,6 +129,22 @@ def forward_gradient_kernel(
     )
 
 
+@njit(cache=True)
+def pixel_sample_of_thread(t, nbatch, nview, nrows, ncols, per_batch, first):
+    """Batch, pixel and sample index of thread ``t`` of a pixel-sample kernel: threads run
+    pixel-fastest, then batch, then sample ``first + k``; the sample index is the CPU's
+    (:func:`cloudct.mc.backward.backward_batches`)."""
+    npix = nview * nrows * ncols
+    pixel = t % npix
+    rest = t // npix
+    b = rest % nbatch
+    k = first + rest // nbatch
+    view = pixel // (nrows * ncols)
+    row = (pixel // ncols) % nrows
+    col = pixel % ncols
+    return b, view, row, col, (pixel * nbatch + b) * per_batch + k
+
+
 @cuda.jit
 def backward_kernel(
     scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, out
@@ -137,20 +153,12 @@ def backward_kernel(
     (images[nbatch, view, row, col], events[nbatch])."""
     images, events = out
     nbatch = images.shape[0]
-    nrows = images.shape[2]
-    ncols = images.shape[3]
-    npix = images.shape[1] * nrows * ncols
     t = cuda.grid(1)
-    if t >= npix * nbatch * count:
+    if t >= images.size * count:
         return
-    pixel = t % npix
-    rest = t // npix
-    b = rest % nbatch
-    k = first + rest // nbatch
-    view = pixel // (nrows * ncols)
-    row = (pixel // ncols) % nrows
-    col = pixel % ncols
-    index = (pixel * nbatch + b) * per_batch + k
+    b, view, row, col, index = pixel_sample_of_thread(
+        t, nbatch, images.shape[1], images.shape[2], images.shape[3], per_batch, first
+    )
     value, vertices = trace_pixel_sample(
         scene.grid, scene.bank, scene.cams, scene.sun, periodic, ground, rr_depth,
         rr_survival, seed, index, view, row, col,
@@ -168,23 +176,15 @@ def drt_kernel(
     gradients[nbatch, nx, ny, nz], events[nbatch])."""
     residual, gradients, events = out
     nbatch = gradients.shape[0]
-    nrows = residual.shape[1]
-    ncols = residual.shape[2]
-    npix = residual.shape[0] * nrows * ncols
     t = cuda.grid(1)
-    if t >= npix * nbatch * count:
+    if t >= residual.size * nbatch * count:
         return
-    pixel = t % npix
-    rest = t // npix
-    b = rest % nbatch
-    k = first + rest // nbatch
-    view = pixel // (nrows * ncols)
-    row = (pixel // ncols) % nrows
-    col = pixel % ncols
+    b, view, row, col, index = pixel_sample_of_thread(
+        t, nbatch, residual.shape[0], residual.shape[1], residual.shape[2], per_batch, first
+    )
     r = residual[view, row, col]
     if r == 0.0:
         return
-    index = (pixel * nbatch + b) * per_batch + k
     mis_length = scene.grid.z_edges[scene.grid.z_edges.size - 1] - scene.grid.z_edges[0]
     vertices = drt_pixel_sample(
         scene.grid, scene.bank, scene.cams, scene.sun, periodic, ground, rr_depth,

@@ -134,7 +134,7 @@ from numba import njit, prange
 
 from cloudct.mc.accumulate import add_to
 from cloudct.mc.backend import drt_runner, resolve_backend
-from cloudct.mc.cameras import pixel_ray
+from cloudct.mc.backward import camera_ray_entry
 from cloudct.mc.events import lambertian_bounce, russian_roulette, scatter
 from cloudct.mc.gradient import check_residual
 from cloudct.mc.random import DOMAIN_DRT, stream_start, uniform
@@ -146,12 +146,9 @@ from cloudct.mc.traversal import (
     INSIDE,
     LEFT,
     cross_face,
-    locate_point,
     march,
     next_face,
     optical_depth_to_exit,
-    ray_box_entry,
-    wrap_into_box,
 )
 from cloudct.physics.mixing import (
     effective_albedo,
@@ -348,19 +345,11 @@ def drt_pixel_sample(
     """
     state = stream_start(seed, DOMAIN_DRT, 2 * index)
     side = stream_start(seed, DOMAIN_DRT, 2 * index + 1)
-    xi_u, state = uniform(state)
-    xi_v, state = uniform(state)
-    ux, uy, uz = pixel_ray(cams, view, row, col, xi_u, xi_v)
-    ox = cams.position[view, 0]
-    oy = cams.position[view, 1]
-    oz = cams.position[view, 2]
-    t = ray_box_entry(grid, ox, oy, oz, ux, uy, uz, periodic)
-    if t < 0.0:
+    hit, px, py, pz, ux, uy, uz, ix, iy, iz, state = camera_ray_entry(
+        grid, cams, periodic, view, row, col, state
+    )
+    if not hit:
         return 0
-    px, py, pz = ox + t * ux, oy + t * uy, oz + t * uz
-    if periodic:
-        px, py = wrap_into_box(grid, px, py)
-    ix, iy, iz = locate_point(grid, px, py, pz, ux, uy, uz)
     # pass 1: the path's radiance estimate
     total, vertices, _, _, _, _, _, _, _, _, _, _, _, _, _ = trace_path(
         grid, bank, sun, periodic, ground_albedo, rr_depth, rr_survival, px, py, pz, ix, iy,
