@@ -129,7 +129,10 @@ def test_recycled_evaluations_equal_the_single_process_ones_and_paths_stay(clien
         if not b.info["resampled"]:
             assert b.info["bytes_from_workers"] < remote.nbytes / 4
     assert [e["resampled"] for e in remote.log] == [True, False, True]
-    assert placements[0] == placements[1]  # the parts stayed where they were recorded
+    # the recycled iteration moved no part to a worker that did not hold it already (Dask
+    # may drop a replica made while recording, which moves nothing)
+    assert placements[0].keys() == placements[1].keys()
+    assert all(set(placements[1][k]) <= set(placements[0][k]) for k in placements[0])
     assert len({w for p in placements[0].values() for w in p}) == 2  # on both workers
 
 
