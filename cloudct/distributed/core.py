@@ -110,7 +110,19 @@ def local_cluster(
     with ``backend="cuda"``. The scheduler's web server (dashboard where bokeh is installed)
     listens on ``dashboard_address`` (default: a free port; ``client.dashboard_link``).
     ``client.close(); client.cluster.close()`` (or :func:`close_client`) stops it.
+
+    The scheduler runs without work stealing, so that a task replaying a recycled path-store
+    part runs on the worker that holds the part (stealing would copy the part to the
+    thief); a part lost with its worker is still recomputed elsewhere. Use the same setting
+    (``distributed.scheduler.work-stealing: false``) for clusters started by other means.
     """
+    import dask
+
+    with dask.config.set({"distributed.scheduler.work-stealing": False}):
+        return _start_local_cluster(workers, threads, gpus, dashboard_address, cluster_kwargs)
+
+
+def _start_local_cluster(workers, threads, gpus, dashboard_address, cluster_kwargs):
     distributed = _import_distributed()
     cores = os.cpu_count() or 1
     kwargs = {"dashboard_address": dashboard_address, "silence_logs": logging.WARNING}

@@ -201,8 +201,13 @@ class DistributedPathStore:
     def _run(self, func, *args, desc: str) -> tuple[list, int]:
         ex = self.executor
         tag = uuid.uuid4().hex[:8]
+        # run each part's task where the part is held (a loose restriction: if its holder
+        # is gone, the part is recomputed and the task runs elsewhere)
+        holders = ex.client.who_has([f for _, _, f in self.parts])
         futures = [
-            ex.submit(func, f, *args, key=f"cloudct-{desc}-{tag}-{s}") for s, _, f in self.parts
+            ex.submit(func, f, *args, key=f"cloudct-{desc}-{tag}-{s}",
+                      workers=list(holders.get(f.key, ())) or None, allow_other_workers=True)
+            for s, _, f in self.parts
         ]
         results = ex.gather(futures)
         if len(results) != len(self.parts):
