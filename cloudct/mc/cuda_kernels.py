@@ -278,6 +278,16 @@ class _Launcher(ABC):
         if last == self.per_batch:
             self.finish()
 
+    def _pixel_sample_setup(self, k, rr_depth, rr_survival, seed, per_batch, host, tpb):
+        """Common state of the pixel-sample launchers (backward, DRT): the device scene,
+        the kernels' scalar arguments, and the host outputs (per-batch array first)."""
+        self.scene = device_scene(k)
+        self.scalars = (k.periodic, k.ground, rr_depth, rr_survival, seed, per_batch)
+        self.per_batch = per_batch
+        self.host = host
+        self.tpb = tpb or THREADS_PER_BLOCK
+        self.nbatch = host[0].shape[0]
+
     @abstractmethod
     def launch(self, first: int, count: int) -> None:
         """Launch the kernel for samples ``first .. first + count - 1`` of every batch."""
@@ -360,12 +370,8 @@ class BackwardLauncher(_Launcher):
         self, k, rr_depth, rr_survival, seed, per_batch, images, events, *,
         threads_per_block: int | None = None,
     ):
-        self.scene = device_scene(k)
-        self.scalars = (k.periodic, k.ground, rr_depth, rr_survival, seed, per_batch)
-        self.per_batch = per_batch
-        self.host = (images, events)
-        self.tpb = threads_per_block or THREADS_PER_BLOCK
-        self.nbatch = images.shape[0]
+        self._pixel_sample_setup(k, rr_depth, rr_survival, seed, per_batch, (images, events),
+                                 threads_per_block)
         _check_fits(images.nbytes, "the per-batch images")
         self.images = device_zeros(images.shape)
         self.events = device_zeros(self.nbatch, np.int64)
@@ -391,12 +397,8 @@ class DRTLauncher(_Launcher):
         self, k, rr_depth, rr_survival, seed, per_batch, residual, gradients, events, *,
         threads_per_block: int | None = None,
     ):
-        self.scene = device_scene(k)
-        self.scalars = (k.periodic, k.ground, rr_depth, rr_survival, seed, per_batch)
-        self.per_batch = per_batch
-        self.host = (gradients, events)
-        self.tpb = threads_per_block or THREADS_PER_BLOCK
-        self.nbatch = gradients.shape[0]
+        self._pixel_sample_setup(k, rr_depth, rr_survival, seed, per_batch,
+                                 (gradients, events), threads_per_block)
         _check_fits(gradients.nbytes, "the per-batch gradients")
         self.residual = to_device(residual)
         self.gradients = device_zeros(gradients.shape)
