@@ -145,10 +145,11 @@ from cloudct.mc.traversal import (
     INF,
     INSIDE,
     LEFT,
-    cross_face,
+    cross_boundary,
     march,
     next_face,
     optical_depth_to_exit,
+    step_index,
 )
 from cloudct.physics.mixing import (
     effective_albedo,
@@ -180,8 +181,14 @@ def sample_transmittance(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic, sta
     rix = riy = riz = -1
     rbeta = 0.0
     rlen = 0.0
+    xe = grid.x_edges
+    ye = grid.y_edges
+    ze = grid.z_edges
+    nx = xe.size - 1
+    ny = ye.size - 1
+    nz = ze.size - 1
     while True:
-        t, axis = next_face(grid, px, py, pz, ux, uy, uz, ix, iy, iz)
+        t, axis = next_face(xe, ye, ze, px, py, pz, ux, uy, uz, ix, iy, iz)
         beta = total_extinction(grid, ix, iy, iz)
         x = beta * t
         area = trans * t * (-math.expm1(-x) / x) if x > 0.0 else trans * t
@@ -194,11 +201,19 @@ def sample_transmittance(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic, sta
                 rbeta = beta
                 rlen = t
         trans *= math.exp(-x)
-        status, px, py, pz, ix, iy, iz = cross_face(
-            grid, px + t * ux, py + t * uy, pz + t * uz, ux, uy, uz, ix, iy, iz, axis, periodic
-        )
-        if status != INSIDE:
-            break
+        px += t * ux
+        py += t * uy
+        pz += t * uz
+        if axis == 0:
+            ix, px = step_index(ix, px, xe, ux)
+        elif axis == 1:
+            iy, py = step_index(iy, py, ye, uy)
+        else:
+            iz, pz = step_index(iz, pz, ze, uz)
+        if ix < 0 or ix == nx or iy < 0 or iy == ny or iz < 0 or iz == nz:
+            status, px, py, pz, ix, iy, iz = cross_boundary(grid, px, py, pz, ix, iy, iz, periodic)
+            if status != INSIDE:
+                break
     if rix < 0:
         return 0.0, 0.0, 0.0, 0.0, 0, 0, 0, state
     u, state = uniform(state)
