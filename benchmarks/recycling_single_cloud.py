@@ -8,8 +8,9 @@ Reported (JSON, printed and written to ``--output``):
 - ``iteration``: wall (and CPU) time of one retrieval iteration, images + gradient, fresh
   (``render`` + ``score_function_gradient`` on independent paths, as ``loss_and_gradient``)
   and recycled (replay of an images store and a gradient store under a medium perturbed by
-  0.98-1.02 voxel-wise), for both storage modes and sorted/unsorted stores; the time to
-  record the two stores, and the recycled cost per iteration amortised over N_r = 30.
+  0.98-1.02 voxel-wise), for the storage modes (camera connections with the cloud's voxels
+  variable or all voxels, crossings, lean) and sorted/unsorted stores; the time to record
+  the two stores, and the recycled cost per iteration amortised over N_r = 30.
   Minimum and median over ``--repeats``; JIT compilation excluded.
 - ``memory``: bytes per stored scattering event and per path in each mode, and the
   projected size of 10^6 paths (``--million`` records 10^6 paths in crossings mode and
@@ -94,16 +95,20 @@ def main() -> None:
                         help="Adam step sizes (1/km per iteration) of the ESS trajectories")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--million", action="store_true", help="record 10^6 paths")
+    parser.add_argument("--skip-ess", action="store_true",
+                        help="keep the ESS trajectories of an earlier run in --output")
     parser.add_argument(
         "--output", default=str(HERE / "results" / "recycling_single_cloud.json")
     )
     args = parser.parse_args()
     n, nb = args.photons, args.batches
+    earlier = json.loads(Path(args.output).read_text()) if Path(args.output).exists() else {}
 
     truth = single_cloud_medium()
     edges = cell_edges(truth)
     scene = single_cloud_scene(np.array([e[0] for e in edges]), np.array([e[-1] for e in edges]))
     cloud = truth["cloud_extinction"].values
+    mask = cloud > 0
     result = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
         "numba_threads": int(os.environ.get("NUMBA_NUM_THREADS", os.cpu_count())),
@@ -144,18 +149,28 @@ def main() -> None:
     iteration = {"fresh": summary(fresh)}
 
     stores = {}
-    for storage in ("crossings", "lean"):
-        def record_two(storage=storage):
-            return (
-                record_paths(reference, scene, photons=n, seed=20, batches=nb, storage=storage),
-                record_paths(reference, scene, photons=n, seed=21, batches=nb, storage=storage),
+    # "connections" with the cloud's voxels variable (the mask an ideal space carving
+    # gives, as in a retrieval), "connections_all" with every voxel variable
+    modes = {
+        "connections": ("connections", mask),
+        "connections_all": ("connections", None),
+        "crossings": ("crossings", None),
+        "lean": ("lean", None),
+    }
+    for name, (storage, variable) in modes.items():
+        def record_two(storage=storage, variable=variable):
+            return tuple(
+                record_paths(reference, scene, photons=n, seed=s, batches=nb, storage=storage,
+                             variable=variable)
+                for s in (20, 21)
             )
 
         (a, b), wall, cpu = timed(record_two)
-        stores[storage] = (a, b)
-        iteration[f"record_two_stores_{storage}"] = {"wall_s": wall, "cpu_s": cpu}
+        stores[name] = (a, b)
+        iteration[f"record_two_stores_{name}"] = {"wall_s": wall, "cpu_s": cpu}
     stores["crossings_unsorted"] = tuple(
-        record_paths(reference, scene, photons=n, seed=s, batches=nb, sort=False)
+        record_paths(reference, scene, photons=n, seed=s, batches=nb, storage="crossings",
+                     sort=False)
         for s in (20, 21)
     )
     assert all(s.sorted for s in stores["crossings"])
@@ -177,24 +192,28 @@ def main() -> None:
         r = iteration[f"recycled_{name}"]
         r["ratio_to_fresh_wall"] = r["wall_min_s"] / f
         r["ratio_to_fresh_cpu"] = r["cpu_min_s"] / iteration["fresh"]["cpu_min_s"]
-    rec = iteration["record_two_stores_crossings"]["wall_s"]
-    amortised = (rec + 30 * iteration["recycled_crossings"]["wall_min_s"]) / 30
-    iteration["recycled_crossings_amortised_30_wall_s"] = amortised
-    iteration["amortised_ratio_to_fresh_wall"] = amortised / f
+    for name in ("connections", "crossings"):
+        rec = iteration[f"record_two_stores_{name}"]["wall_s"]
+        amortised = (rec + 30 * iteration[f"recycled_{name}"]["wall_min_s"]) / 30
+        iteration[f"recycled_{name}_amortised_30_wall_s"] = amortised
+        iteration[f"amortised_{name}_ratio_to_fresh_wall"] = amortised / f
     result["iteration"] = iteration
     write(result, args.output)
 
     # -- memory (stores recorded under the true cloud) ---------------------------------
     memory = {}
-    for storage in ("crossings", "lean"):
-        s = record_paths(truth, scene, photons=n, seed=25, batches=nb, storage=storage)
-        memory[storage] = {
+    for name, (storage, variable) in modes.items():
+        s = record_paths(truth, scene, photons=n, seed=25, batches=nb, storage=storage,
+                         variable=variable)
+        memory[name] = {
             "bytes_per_event": s.bytes_per_event,
             "bytes_per_path": s.nbytes / s.paths,
             "bytes_per_record": s.nbytes / s.records,
             "events_per_path": s.events / s.paths,
             "records_per_path": s.records / s.paths,
             "crossings_per_segment": s.crossings / max(s.records - s.paths, 1),
+            "connections_per_path": s.connections / s.paths,
+            "crossings_per_connection": s.arrays.connection_voxel.size / max(s.connections, 1),
             "projected_bytes_1e6_paths": s.nbytes / s.paths * 1e6,
         }
     if args.million:
@@ -210,11 +229,17 @@ def main() -> None:
     result["memory"] = memory
     write(result, args.output)
 
+    if args.skip_ess:
+        if "ess" in earlier:
+            result["ess"] = {**earlier["ess"], "from_run_of": earlier.get("date")}
+        result["load_average_end"] = os.getloadavg()
+        write(result, args.output)
+        return
+
     # -- ESS along a retrieval that never resamples --------------------------------------
     # the retrieval's Adam (cloudct.retrieval.optimizers, step in 1/km per iteration; the
     # seed paper's 2.0 and a smaller one) on the cloud's voxels (the mask an ideal space
     # carving gives), from 0.7 x the true cloud, driven by the recycled gradients
-    mask = cloud > 0
     start = 0.7 * cloud
     result["ess"] = {"start": "0.7 x truth", "optimizer": "adam", "trajectories": {}}
     policies = {
@@ -227,7 +252,7 @@ def main() -> None:
     ]
     for step, kind in runs:
         policy = policies[kind]
-        recycler = Recycler(scene, photons=n, batches=nb, policy=policy, seed=40)
+        recycler = Recycler(scene, photons=n, batches=nb, policy=policy, seed=40, variable=mask)
         optimizer = Adam(step=step)
         beta = start.copy()
         trajectory = []

@@ -14,13 +14,19 @@
      paper Sec. 5.3), only the order of the additions into an element can differ: equal **to
      float64 rounding** (rtol 1e-12, atol 1e-12 x the largest element); vertex counts exact.
 
+   Path recycling (:mod:`cloudct.recycling.cuda_replay`, one thread per stored path)
+   against the CPU replay of the same store: log r per path **bitwise** in every thread
+   order; images and gradients **bitwise** with one thread per block in photon order, **to
+   float64 rounding** in the storage-slot order of a sorted store (path sorting) and with 32
+   threads per block; event counts exact.
+
    The simulator runs the ``@njit`` routines as CPU code: it checks the kernels' indexing,
    launches, passes and reductions, not the GPU compilation.
 2. GPU compilation without a GPU: each kernel, with every ``@njit`` routine it calls and the
    atomic CUDA implementation of ``add_to``, is compiled to PTX for sm_90 by NVVM and
    assembled by ptxas (from the ``cu12`` toolkit wheels of the ``test`` extra).
 3. Back-end choice in this process (no GPU): ``auto`` falls back to the CPU with a warning,
-   ``cuda`` raises.
+   ``cuda`` raises (render and replay).
 
 numba-cuda is part of the ``test`` extra: without it these tests fail rather than skip. On a
 machine with a GPU, ``tests/test_cuda_gpu.py`` runs the kernels for real.
@@ -60,7 +66,14 @@ scenes = {"open": Scene(cams, Sun(30.0, 20.0), "open", 0.3),
           "periodic": Scene(cams[:1], Sun(20.0, 60.0), "periodic", None)}
 """
 
-SIMULATOR_SCRIPT = SCENES + """
+COMPARE = """
+def compare(cpu, gpu):
+    cpu, gpu = np.asarray(cpu), np.asarray(gpu)
+    return {"bitwise": bool(np.array_equal(cpu, gpu)), "max_diff": float(np.abs(cpu - gpu).max()),
+            "scale": float(np.abs(cpu).max()), "cpu": cpu.tolist(), "gpu": gpu.tolist()}
+"""
+
+SIMULATOR_SCRIPT = SCENES + COMPARE + """
 import json
 from numba import config
 assert config.ENABLE_CUDASIM
@@ -70,11 +83,6 @@ from cloudct.mc.forward import RESIDUAL, trace_photon
 from cloudct.mc.backward import trace_pixel_sample
 from cloudct.mc.gradient import score_function_gradient
 from cloudct.mc.render import kernel_inputs, render_batches
-
-def compare(cpu, gpu):
-    cpu, gpu = np.asarray(cpu), np.asarray(gpu)
-    return {"bitwise": bool(np.array_equal(cpu, gpu)), "max_diff": float(np.abs(cpu - gpu).max()),
-            "scale": float(np.abs(cpu).max()), "cpu": cpu.tolist(), "gpu": gpu.tolist()}
 
 out = {"auto": resolve_backend("auto")}
 residual = np.random.default_rng(2).normal(size=(2, 6, 6))
@@ -127,6 +135,81 @@ out["photon/vertices"] = compare(cpu_vertices, vertices)
 print("RESULT " + json.dumps(out))
 """
 
+RECYCLING_SCRIPT = SCENES + COMPARE + """
+import gc, json
+from numba import config
+assert config.ENABLE_CUDASIM
+import cloudct.mc.cuda_kernels as ck
+import cloudct.recycling.cuda_replay as cr
+from cloudct.recycling import (Recycler, correction_log_weights, record_paths,
+                               replay_batch_gradients, replay_images)
+from cloudct.recycling.store import STORAGE
+
+current = medium.copy(deep=True)
+current["cloud_extinction"] = medium["cloud_extinction"] * np.random.default_rng(3).uniform(
+    0.8, 1.2, ext.shape)
+residual = np.random.default_rng(2).normal(size=(2, 6, 6))
+stores = [(name, storage, sort, {}) for name in scenes for storage in STORAGE
+          if storage != "auto" for sort in (False, True)]
+if "connections" in STORAGE:  # camera connections of the variable (cloud) voxels only
+    stores.append(("open", "connections", True, {"variable": ext > 0}))
+out = {}
+for name, storage, sort, extra in stores:
+    scene = scenes[name]
+    res = residual[:len(scene.cameras)]
+    store = record_paths(medium, scene, photons=48, batches=3, seed=5, storage=storage,
+                         sort=sort, **extra)
+    label = f"{name}/{storage}{'-masked' if extra else ''}/sort{int(sort)}"
+    cpu_images, cpu_ii = replay_images(store, current)
+    cpu_gradient, cpu_gi = replay_batch_gradients(store, current, res)
+    cpu_log_w = correction_log_weights(store, current)
+    # thread order: photon order (the CPU's) or consecutive storage slots (path sorting)
+    for tpb, by_slot in ((1, False), (1, True), (32, True)):
+        ck.THREADS_PER_BLOCK, ck.SORT_PATHS = tpb, by_slot
+        images, ii = replay_images(store, current, backend="cuda")
+        gradient, gi = replay_batch_gradients(store, current, res, backend="cuda")
+        key = f"{label}/tpb{tpb}/{'slot' if by_slot else 'photon'}"
+        for what, cpu, gpu, cpu_info, gpu_info in (("images", cpu_images, images, cpu_ii, ii),
+                                                   ("gradient", cpu_gradient, gradient, cpu_gi,
+                                                    gi)):
+            case = compare(cpu, gpu)
+            case["events"] = [cpu_info["events"], gpu_info["events"]]
+            case["backend"] = gpu_info["backend"]
+            out[f"{key}/{what}"] = case
+            out[f"{key}/{what}/log_r"] = compare(cpu_info["log_r"], gpu_info["log_r"])
+        out[f"{key}/log_weights"] = compare(cpu_log_w,
+                                            correction_log_weights(store, current, "cuda"))
+    # slot order: thread q of the launch takes the path in storage slot q
+    order = np.asarray(cr.device_store(store).order(True))
+    out[f"{label}/slot_order"] = bool(np.array_equal(store.arrays.slot[order],
+                                                     np.arange(store.paths)))
+
+# the recycler: two evaluations (record, then recycle under another medium) on each back end
+ck.THREADS_PER_BLOCK, ck.SORT_PATHS = 32, True
+evaluations = []
+for backend in ("cpu", "cuda"):
+    recycler = Recycler(scenes["open"], photons=48, batches=3, seed=9, storage="crossings",
+                        backend=backend)
+    evaluations.append([recycler.evaluate(m, residual=residual) for m in (medium, current)])
+for t, (cpu, gpu) in enumerate(zip(*evaluations)):
+    out[f"recycler/{t}/images"] = compare(cpu.images.radiance, gpu.images.radiance)
+    out[f"recycler/{t}/gradient"] = compare(cpu.gradient, gpu.gradient)
+    out[f"recycler/{t}/info"] = [[e.info[k] for k in ("reasons", "ess_images", "ess_gradient")]
+                                 for e in (cpu, gpu)]
+
+# the device copy of a store is made once and freed with the store
+def cached_then_freed():
+    store = record_paths(medium, scenes["open"], photons=6, batches=2, seed=1)
+    first = cr.device_store(store)
+    key = id(store)
+    same = cr.device_store(store) is first
+    del store, first
+    gc.collect()
+    return same, key not in cr._resident
+out["device_store"] = cached_then_freed()
+print("RESULT " + json.dumps(out))
+"""
+
 PTX_SCRIPT = SCENES + """
 import json, os, subprocess, tempfile
 from types import SimpleNamespace
@@ -157,22 +240,75 @@ cases = {
     "backward_kernel": (scene, *scalars, 0, 2, (images, events)),
     "drt_kernel": (scene, *scalars, 0, 2, (residual, gradients, events)),
 }
+kernels = dict.fromkeys(cases, ck)
+
+# the replay kernels of path recycling, on a store's arrays
+import cloudct.recycling.cuda_replay as cr
+from cloudct.recycling import record_paths
+
+store = record_paths(medium, scenes["open"], photons=8, batches=2, seed=3)
+beta, order, log_r = np.zeros(64), np.zeros(8, np.int64), np.zeros(8)
+scratch = np.zeros(store.records)
+replay = (scene, k.periodic, k.ground, 100, 0.95, 1.0, 4, True, store.arrays, 0, 4)
+cases["replay_render_kernel"] = (*replay, (beta, order, images, log_r, events, scratch, d))
+cases["replay_gradient_kernel"] = (*replay, (beta, order, residual, gradients, log_r, events,
+                                             scratch, d))
+cases["log_ratio_kernel"] = (scene, k.periodic, 4, True, store.arrays, 0, 4,
+                             (beta, order, log_r))
+kernels.update(dict.fromkeys(["replay_render_kernel", "replay_gradient_kernel",
+                              "log_ratio_kernel"], cr))
+
+
+def link_with_reshape(ptx):
+    # array.reshape in a kernel calls numba_attempt_nocopy_reshape, which numba-cuda links
+    # from its reshape_funcs.cu at launch (compiled by NVRTC); do the same with nvJitLink
+    import numba_cuda
+    from cuda.bindings import nvjitlink, nvrtc
+
+    path = os.path.join(os.path.dirname(numba_cuda.__file__), "numba", "cuda",
+                        "reshape_funcs.cu")
+    with open(path, "rb") as f:
+        _, prog = nvrtc.nvrtcCreateProgram(f.read(), b"reshape_funcs.cu", 0, [], [])
+    options = [b"-arch=compute_90", b"-rdc=true"]
+    assert nvrtc.nvrtcCompileProgram(prog, len(options), options)[0] == 0
+    size = nvrtc.nvrtcGetPTXSize(prog)[1]
+    helper = b" " * size
+    nvrtc.nvrtcGetPTX(prog, helper)
+    handle = nvjitlink.create(2, ["-arch=sm_90", "-Xptxas=-v"])
+    for name, data in (("kernel", ptx.encode()), ("reshape_funcs", helper)):
+        nvjitlink.add_data(handle, nvjitlink.InputType.PTX, data, len(data), name)
+    try:
+        nvjitlink.complete(handle)
+        rc = 0
+    except nvjitlink.nvJitLinkError:
+        rc = 1
+    log = bytearray(nvjitlink.get_info_log_size(handle))
+    nvjitlink.get_info_log(handle, log)
+    nvjitlink.destroy(handle)
+    return rc, log.decode(errors="replace")
+
+
 import nvidia.cuda_nvcc
 ptxas = os.path.join(list(nvidia.cuda_nvcc.__path__)[0], "bin", "ptxas")
 out = {}
 with tempfile.TemporaryDirectory() as tmp:
     for name, args in cases.items():
-        ptx, _ = cuda.compile_ptx(getattr(ck, name).py_func, tuple(typeof(a) for a in args),
-                                  cc=CC)
-        path = os.path.join(tmp, name + ".ptx")
-        with open(path, "w") as f:
-            f.write(ptx)
-        asm = subprocess.run([ptxas, "-arch=sm_90", "-v", path, "-o", path + ".cubin"],
-                             capture_output=True, text=True)
+        ptx, _ = cuda.compile_ptx(getattr(kernels[name], name).py_func,
+                                  tuple(typeof(a) for a in args), cc=CC)
+        if "numba_attempt_nocopy_reshape" in ptx:
+            rc, log = link_with_reshape(ptx)
+        else:
+            path = os.path.join(tmp, name + ".ptx")
+            with open(path, "w") as f:
+                f.write(ptx)
+            asm = subprocess.run([ptxas, "-arch=sm_90", "-v", path, "-o", path + ".cubin"],
+                                 capture_output=True, text=True)
+            rc, log = asm.returncode, asm.stderr
         out[name] = {
             "atomics": sorted({w for w in ptx.split() if w.startswith("atom.")}),
-            "ptxas_rc": asm.returncode,
-            "ptxas": [l for l in asm.stderr.splitlines() if "registers" in l or "rror" in l],
+            "ptxas_rc": rc,
+            "ptxas": [l for l in log.splitlines() if "registers" in l or "rror" in l
+                      or "spill" in l],
         }
 print("RESULT " + json.dumps(out))
 """
@@ -252,8 +388,10 @@ def test_reordered_threads_match_cpu_to_rounding(simulated, key):
 
 
 def test_kernels_compile_for_a_gpu():
-    """Every kernel compiles to PTX (sm_90) and assembles, with atomic float64 additions
-    where it writes shared images or gradients (``add_to``'s CUDA implementation)."""
+    """Every kernel, the replay kernels of path recycling included, compiles to PTX (sm_90)
+    and assembles, with atomic float64 additions where it writes shared images or gradients
+    (``add_to``'s CUDA implementation). A kernel that reshapes an array is linked with
+    numba-cuda's reshape helper by nvJitLink, as numba-cuda links it at launch."""
     require_numba_cuda()
     if importlib.util.find_spec("nvidia.cuda_nvcc") is None:
         pytest.fail("NVVM/ptxas not found: install numba-cuda[cu12] (the test extra)",
@@ -262,9 +400,10 @@ def test_kernels_compile_for_a_gpu():
     for name, info in result.items():
         assert info["ptxas_rc"] == 0, f"{name}: ptxas failed: {info['ptxas']}"
     for name in ("forward_render_kernel", "forward_gradient_kernel", "backward_kernel",
-                 "drt_kernel"):
+                 "drt_kernel", "replay_render_kernel", "replay_gradient_kernel"):
         assert "atom.global.add.f64" in result[name]["atomics"], result[name]
     assert "atom.global.add.f64" not in result["forward_residual_kernel"]["atomics"]
+    assert not result["log_ratio_kernel"]["atomics"]
 
 
 def test_auto_backend_falls_back_to_cpu_with_a_warning():
@@ -307,3 +446,110 @@ def test_drt_kernel_matches_cpu_to_rounding(simulated, key):
     cpu, gpu = np.array(case["cpu"]), np.array(case["gpu"])
     assert case["scale"] > 0.0
     np.testing.assert_allclose(gpu, cpu, rtol=1e-12, atol=1e-12 * case["scale"], err_msg=key)
+
+
+# --------------------------------------------------------------------------------------
+# Path recycling: the replay kernels (cloudct.recycling.cuda_replay) against the CPU replay
+# of the same store, for every storage mode, sorted and unsorted stores, both scenes.
+# --------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def recycled() -> dict:
+    require_numba_cuda()
+    return run_script(RECYCLING_SCRIPT, simulator=True)
+
+
+def replay_cases(recycled: dict, *parts: str) -> dict:
+    """The image and gradient comparisons whose key holds every one of ``parts``."""
+    cases = {
+        key: case for key, case in recycled.items()
+        if key.endswith(("/images", "/gradient")) and all(p in key for p in parts)
+    }
+    assert cases, parts
+    return cases
+
+
+def test_replay_ran_on_the_cuda_backend(recycled):
+    cases = replay_cases(recycled, "/tpb")
+    assert all(case["backend"] == "cuda" for case in cases.values())
+    assert all(case["scale"] > 0.0 for case in cases.values())
+
+
+@pytest.mark.parametrize("parts", [("/tpb1/photon/",), ("/sort0/tpb1/slot/",)])
+def test_replay_in_photon_order_matches_cpu_bitwise(recycled, parts):
+    """One thread per block in photon order (an unsorted store's slot order is its photon
+    order): every image and gradient element receives its paths' terms in the CPU's order,
+    so the per-batch images and gradients are bitwise those of the CPU replay."""
+    for key, case in replay_cases(recycled, *parts).items():
+        assert case["bitwise"], f"{key}: max difference {case['max_diff']:.3g}"
+        assert case["events"][0] == case["events"][1] > 0, key
+
+
+@pytest.mark.parametrize("parts", [("/sort1/tpb1/slot/",), ("/tpb32/",)])
+def test_replay_in_slot_order_matches_cpu_to_rounding(recycled, parts):
+    """Sorted stores replayed in storage-slot order (path sorting) and blocks of 32 threads:
+    the same terms, added in another order: equal to float64 rounding; events exact."""
+    for key, case in replay_cases(recycled, *parts).items():
+        cpu, gpu = np.array(case["cpu"]), np.array(case["gpu"])
+        np.testing.assert_allclose(gpu, cpu, rtol=1e-12, atol=1e-12 * case["scale"],
+                                   err_msg=key)
+        assert case["events"][0] == case["events"][1] > 0, key
+
+
+def test_replay_log_r_is_bitwise_in_every_thread_order(recycled):
+    """log r per path (from the replays and from the log-weight kernel): each path is
+    evaluated by one thread with the CPU's operations: bitwise, whatever the order."""
+    cases = {k: v for k, v in recycled.items() if k.endswith(("/log_r", "/log_weights"))}
+    assert len(cases) == 3 * len(replay_cases(recycled, "/tpb")) // 2
+    for key, case in cases.items():
+        assert case["bitwise"], f"{key}: max difference {case['max_diff']:.3g}"
+    assert any(case["scale"] > 0.0 for case in cases.values())
+
+
+def test_replay_slot_order_takes_consecutive_slots(recycled):
+    orders = {k: v for k, v in recycled.items() if k.endswith("/slot_order")}
+    assert orders and all(orders.values()), orders
+
+
+def test_recycler_on_the_cuda_backend_matches_cpu(recycled):
+    """Two evaluations (the first records the stores, the second recycles them under
+    another medium): the same decisions and ESS, images and gradient to rounding."""
+    for t in (0, 1):
+        for what in ("images", "gradient"):
+            case = recycled[f"recycler/{t}/{what}"]
+            assert case["scale"] > 0.0
+            np.testing.assert_allclose(np.array(case["gpu"]), np.array(case["cpu"]), rtol=1e-12,
+                                       atol=1e-12 * case["scale"], err_msg=f"{t}/{what}")
+        cpu_info, gpu_info = recycled[f"recycler/{t}/info"]
+        assert cpu_info == gpu_info
+    assert recycled["recycler/0/info"][0][0] == {"images": "initial", "gradient": "initial"}
+
+
+def test_device_store_is_cached_and_freed_with_the_store(recycled):
+    assert recycled["device_store"] == [True, True]
+
+
+def test_replay_auto_backend_falls_back_to_cpu_with_a_warning():
+    """No GPU in this process: the replay's ``auto`` warns and runs on the CPU (bitwise the
+    CPU replay); ``cuda`` raises; so does a Recycler asked for ``cuda``."""
+    require_numba_cuda()
+    from numba import cuda
+
+    from cloudct.recycling import Recycler, record_paths, replay_images
+
+    if cuda.is_available():
+        pytest.skip("a GPU (or the simulator) is available in this process")
+    ns: dict = {}
+    exec(SCENES, ns)
+    store = record_paths(ns["medium"], ns["scenes"]["open"], photons=8, batches=2, seed=1)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        auto, info = replay_images(store, ns["medium"], backend="auto")
+    assert info["backend"] == "cpu"
+    assert [str(w.message) for w in caught if "backend='auto'" in str(w.message)]
+    assert np.array_equal(auto, replay_images(store, ns["medium"])[0])
+    with pytest.raises(RuntimeError, match="backend='cuda'"):
+        replay_images(store, ns["medium"], backend="cuda")
+    with pytest.raises(RuntimeError, match="backend='cuda'"):
+        Recycler(ns["scenes"]["open"], photons=8, batches=2, backend="cuda")

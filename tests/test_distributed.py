@@ -103,6 +103,18 @@ def test_gradients_loss_and_retrieval_equal_the_single_process_ones_bitwise(clie
     assert same(one.state.extinction, many.state.extinction)
     assert one.state.log["loss"] == many.state.log["loss"]
 
+    # with recycling the stores live on the workers (a DistributedRecycler), same iterates
+    config = RetrievalConfig(iterations=3, photons=8_000, stages=(1,), stage_photons=(1.0,),
+                             recycling="fixed", period=2)
+    one = Retrieval(measured, guess, config)
+    one.run(progress=False)
+    many = Retrieval(measured, guess, config, client=client)
+    many.run(progress=False)
+    assert type(many._recycler).__name__ == "DistributedRecycler"
+    assert same(one.state.extinction, many.state.extinction)
+    assert one.state.log["loss"] == many.state.log["loss"]
+    assert one.state.log["resampled"] == [1.0, 0.0, 1.0]
+
 
 def test_recycled_evaluations_equal_the_single_process_ones_and_paths_stay(client):
     medium, scene = gradient_medium(), gradient_scene()

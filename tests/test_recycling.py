@@ -6,7 +6,8 @@
 - Under a perturbed medium (cloud extinction scaled voxel by voxel by 0.9-1.1), recycled
   images and gradients agree with fresh estimates from independent paths within their
   combined standard errors over batches.
-- Sorted and unsorted stores, and the two storage modes, give bitwise identical results.
+- Sorted and unsorted stores, and the three storage modes, give bitwise identical results;
+  camera connections restricted to a mask of variable voxels agree to rounding.
 - The effective sample size of the correction factors falls as the medium departs from
   the reference.
 
@@ -44,7 +45,7 @@ from cloudct.recycling import (
     replay_render,
     sort_paths,
 )
-from cloudct.recycling.store import crossings_bytes, lean_bytes
+from cloudct.recycling.store import connections_bytes, crossings_bytes, lean_bytes
 
 BATCHES = 32
 RR = {"rr_depth": 2, "rr_survival": 0.6}
@@ -217,9 +218,12 @@ def test_sorted_unsorted_and_storage_modes_give_identical_results(case):
     kw = dict(photons=4_000, seed=5, batches=BATCHES, **rr)
     crossings = record_paths(medium, scene, storage="crossings", sort=False, **kw)
     lean = record_paths(medium, scene, storage="lean", sort=False, **kw)
+    connections = record_paths(medium, scene, storage="connections", sort=False, **kw)
     assert (crossings.storage, lean.storage) == ("crossings", "lean")
+    assert connections.storage == "connections" and connections.connections > 0
     reference = _results(crossings, target, weights)
-    for store in (sort_paths(crossings), lean, sort_paths(lean)):
+    for store in (sort_paths(crossings), lean, sort_paths(lean), connections,
+                  sort_paths(connections)):
         for a, b in zip(reference, _results(store, target, weights), strict=True):
             assert np.array_equal(a, b)
     # sorting: within every batch, the stored paths have non-decreasing lengths
@@ -228,8 +232,38 @@ def test_sorted_unsorted_and_storage_modes_give_identical_results(case):
     assert np.all(np.diff(lengths, axis=1) >= 0)
     assert np.array_equal(np.sort(store.record_counts()), np.sort(crossings.record_counts()))
     # memory: the crossings cost extra bytes; both are reported per scattering event
-    assert crossings.nbytes > lean.nbytes
+    assert connections.nbytes > crossings.nbytes > lean.nbytes
     assert crossings.bytes_per_event > lean.bytes_per_event > 0
+
+
+def test_connections_with_a_variable_mask_keep_only_its_crossings(case):
+    """Connections that keep only the crossings of variable voxels (and the optical depth
+    of the others) give the results of the full store to rounding, for media that change
+    only inside the mask; a medium that changes outside it is refused."""
+    _, medium, scene, rr = case
+    variable = medium["cloud_extinction"].values > 0
+    target = perturbed(medium)  # the cloud changes, the air does not
+    weights = weights_for(scene)
+    kw = dict(photons=4_000, seed=5, batches=BATCHES, **rr)
+    full = record_paths(medium, scene, storage="connections", **kw)
+    masked = record_paths(medium, scene, storage="connections", variable=variable, **kw)
+    assert masked.storage == "connections"
+    assert 0 < masked.arrays.connection_voxel.size < full.arrays.connection_voxel.size
+    assert masked.nbytes < full.nbytes
+    images, log_r, grad, grad_se = _results(full, target, weights)
+    m_images, m_log_r, m_grad, m_grad_se = _results(masked, target, weights)
+    assert np.array_equal(log_r, m_log_r)  # the segments do not use the mask
+    np.testing.assert_allclose(m_images, images, rtol=1e-12, atol=1e-15 * images.max())
+    # the gradient inside the mask; outside it is not computed (zero)
+    scale = np.abs(grad).max()
+    np.testing.assert_allclose(m_grad[variable], grad[variable], rtol=0, atol=1e-11 * scale)
+    assert np.all(m_grad[~variable] == 0.0) and np.abs(grad[~variable]).max() > 0
+    air = medium.copy(deep=True)
+    air["air_extinction"] = air["air_extinction"] * 1.01
+    with pytest.raises(ValueError, match="outside the store's variable mask"):
+        replay_images(masked, air)
+    with pytest.raises(ValueError, match="boolean mask"):
+        record_paths(medium, scene, storage="connections", variable=variable[:-1], **kw)
 
 
 def test_effective_sample_size_falls_as_the_medium_departs_from_the_reference():
@@ -257,6 +291,16 @@ def test_memory_budget_chooses_the_storage_and_rejects_too_small_budgets():
     vsize = full.arrays.voxel.itemsize
     assert lean.nbytes == lean_bytes(lean.records, lean.paths, vsize)
     assert full.nbytes == lean.nbytes + crossings_bytes(full.records, full.crossings, vsize)
+    connections = record_paths(medium, scene, storage="connections", **kw)
+    assert connections.nbytes == full.nbytes + connections_bytes(
+        full.records, connections.connections, connections.arrays.connection_voxel.size, vsize
+    )
+    assert record_paths(medium, scene, **kw).storage == "connections"
+    assert record_paths(medium, scene, memory_budget=connections.nbytes, **kw).storage == (
+        "connections"
+    )
+    with pytest.raises(MemoryBudgetError, match="connections storage needs"):
+        record_paths(medium, scene, memory_budget=full.nbytes, storage="connections", **kw)
     assert record_paths(medium, scene, memory_budget=full.nbytes, **kw).storage == "crossings"
     assert record_paths(medium, scene, memory_budget=full.nbytes - 1, **kw).storage == "lean"
     with pytest.raises(MemoryBudgetError, match="crossings storage needs"):

@@ -128,6 +128,7 @@ class DistributedPathStore:
         cls, client, medium: xr.Dataset, scene: Scene, *, photons: int, seed: int = 0,
         batches: int = 32, storage: str = "auto", memory_budget: float | None = None,
         sort: bool = True, rr_depth: int = 100, rr_survival: float = 0.95,
+        variable: np.ndarray | None = None,
     ) -> DistributedPathStore:
         """Record ``photons`` paths on the workers (arguments as
         :func:`~cloudct.recycling.store.record_paths`; ``memory_budget`` is the total over
@@ -152,7 +153,7 @@ class DistributedPathStore:
             future = ex.submit(
                 record_part, medium_future, scene_future, seed=int(seed), per_batch=per_batch,
                 start=start, count=count, storage=storage, memory_budget=budget, sort=sort,
-                rr_depth=int(rr_depth), rr_survival=float(rr_survival),
+                rr_depth=int(rr_depth), rr_survival=float(rr_survival), variable=variable,
                 key=f"cloudct-paths-{tag}-{start}",
             )
             parts.append((start, count, future))
@@ -312,6 +313,7 @@ class DistributedRecycler(Recycler):
             self.executor, medium, self.scene, photons=photons, seed=seed,
             batches=self.batches, storage=self.storage, memory_budget=memory_budget,
             sort=self.sort, rr_depth=self.rr_depth, rr_survival=self.rr_survival,
+            variable=self.variable,
         )
         self._moved[0] += store.info["bytes_to_workers"]
         return store

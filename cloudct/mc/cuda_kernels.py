@@ -241,12 +241,12 @@ def launch_count(nbatch: int, per_photon_bytes: int = 0, fraction: float = 0.5) 
     return max(1, limit // nbatch)
 
 
-def _check_fits(nbytes: int, what: str) -> None:
+def _check_fits(nbytes: int, what: str, advice: str = "use fewer batches") -> None:
     free = free_memory()
     if nbytes > 0.8 * free:
         raise MemoryError(
             f"{what} need {nbytes / 2**30:.2f} GiB of device memory, {free / 2**30:.2f} GiB "
-            "free: use fewer batches"
+            f"free: {advice}"
         )
 
 

@@ -32,6 +32,7 @@ from cloudct.mc.traversal import (
     INF,
     LEFT,
     STOPPED,
+    Trail,
     locate_point,
     march,
     optical_depth_to_exit,
@@ -95,6 +96,17 @@ def put_record(record, row, kind, grid, px, py, pz, ux, uy, uz, ix, iy, iz, opti
 
 
 @njit(cache=True)
+def connection_angular(grid, bank, ix, iy, iz, mu, ground_albedo):
+    """Angular factor of a local estimate from voxel (ix, iy, iz): the mixture phase
+    function at the scattering cosine ``mu`` (``ground_albedo < 0``: a scattering event),
+    or A mu / pi for the Lambertian ground, ``mu`` the cosine of the direction to the
+    camera with the vertical (Eqs. 36-39)."""
+    if ground_albedo < 0.0:
+        return mixture_phase_function(grid, bank, ix, iy, iz, mu)
+    return ground_albedo * mu * INV_PI
+
+
+@njit(cache=True)
 def local_estimate(
     grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz, weight, ground_albedo,
     mode, image, residual, gradient, trail=None,
@@ -125,13 +137,13 @@ def local_estimate(
                 )
                 if row < 0:
                     continue
-                mu = ux * cx + uy * cy + uz * cz
                 if ground_albedo < 0.0:
-                    angular = mixture_phase_function(grid, bank, ix, iy, iz, mu)
+                    mu = ux * cx + uy * cy + uz * cz
                 elif cz > 0.0:
-                    angular = ground_albedo * cz * INV_PI
+                    mu = cz
                 else:
                     continue
+                angular = connection_angular(grid, bank, ix, iy, iz, mu, ground_albedo)
                 if mode != RENDER and residual[view, row, col] == 0.0:
                     continue
                 if trail is None or mode != GRADIENT:
@@ -178,7 +190,7 @@ def deposit_trail(trail, gradient, weight):
 @njit(cache=True)
 def trace_photon(
     grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, index,
-    mode, image, residual, gradient, path_sum, record=None, first=0,
+    mode, image, residual, gradient, path_sum, record=None, first=0, trail=None,
 ):
     """Trace forward photon ``index`` (``ground_albedo < 0``: no ground).
 
@@ -189,6 +201,9 @@ def trace_photon(
     event e holds the segments and sampled vertices of the path up to e, so segment k is
     weighted by W_k = sum_{e >= k} S_e, obtained as ``path_sum`` minus the events already
     passed: the cost stays linear in the path length.
+
+    A scratch :class:`~cloudct.mc.traversal.Trail` lets GRADIENT walk each camera
+    connection once (see :func:`local_estimate`).
 
     COUNT and RECORD make no estimates (the same random stream gives the same path): they
     return the number of path records (:data:`ENTRY`, its vertices, and the :data:`ESCAPE`
@@ -243,7 +258,7 @@ def trace_photon(
             if mode < COUNT:
                 s_event = local_estimate(
                     grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz,
-                    weight, ground_albedo, mode, image, residual, gradient,
+                    weight, ground_albedo, mode, image, residual, gradient, trail,
                 )
             weight *= ground_albedo
             ux, uy, uz, state = lambertian_bounce(state)
@@ -256,7 +271,7 @@ def trace_photon(
             if mode < COUNT:
                 s_event = local_estimate(
                     grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz,
-                    weight, -1.0, mode, image, residual, gradient,
+                    weight, -1.0, mode, image, residual, gradient, trail,
                 )
             vx, vy, vz = ux, uy, uz
             ux, uy, uz, state = scatter(grid, bank, ix, iy, iz, ux, uy, uz, state)
@@ -289,10 +304,14 @@ def forward_batches(
     holds, and their random streams, do not depend on the thread count. RENDER accumulates
     batch b's local estimates (not yet divided by its photon count) in ``images[b]``;
     GRADIENT accumulates its residual-weighted score-function gradient in ``gradients[b]``
-    (each photon first traced in RESIDUAL mode for its sum, then again in GRADIENT mode).
+    (each photon first traced in RESIDUAL mode for its sum, then again in GRADIENT mode,
+    with a scratch trail per batch so that each camera connection is walked once).
     ``events[b]`` counts the path vertices.
     """
+    capacity = 4 * (grid.x_edges.size + grid.y_edges.size + grid.z_edges.size) + 16
     for b in prange(images.shape[0]):
+        trail = Trail(np.zeros(capacity, np.int64), np.zeros(capacity), np.zeros(1, np.int64),
+                      np.zeros(1))
         n = 0
         for k in range(first, last):
             index = b * photons_per_batch + k
@@ -310,7 +329,7 @@ def forward_batches(
                     trace_photon(
                         grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth,
                         rr_survival, seed, index, GRADIENT, images[b], residual, gradients[b],
-                        path_sum,
+                        path_sum, None, 0, trail,
                     )
                 n += vertices
         events[b] += n

@@ -31,6 +31,7 @@ import numpy as np
 from numba import njit, prange
 
 from cloudct.mc.accumulate import add_to
+from cloudct.mc.cameras import project
 from cloudct.mc.forward import (
     CLOUD,
     COUNT,
@@ -40,6 +41,7 @@ from cloudct.mc.forward import (
     RECORD,
     RENDER,
     SCATTER,
+    connection_angular,
     local_estimate,
     trace_photon,
 )
@@ -67,6 +69,16 @@ class StoreArrays(NamedTuple):
     crossing_start: np.ndarray  # int64[nrec + 1] ("crossings" storage; else int64[1])
     crossing_voxel: np.ndarray  # int32/int64[ncross]: flat voxel of each crossing
     crossing_length: np.ndarray  # float64[ncross]: length inside it, km
+    # "connections" storage (else connection_start = int64[1], the rest empty): per event
+    # record its camera connections, per connection its crossings of variable voxels
+    connection_start: np.ndarray  # int64[nrec + 1]: CSR offsets of each record's connections
+    connection_pixel: np.ndarray  # int32[nconn]: (view * nrows + row) * ncols + col
+    connection_cosine: np.ndarray  # float64[nconn]: mu of :func:`connection_angular`
+    connection_factor: np.ndarray  # float64[nconn]: 1 / (r^2 Omega_pixel), 1/km^2
+    connection_tau: np.ndarray  # float64[nconn]: optical depth of its frozen voxels
+    connection_crossing_start: np.ndarray  # int64[nconn + 1]
+    connection_voxel: np.ndarray  # int32/int64[ncc]: flat voxel of each variable crossing
+    connection_length: np.ndarray  # float64[ncc]: length inside it, km
 
 
 @njit(cache=True)
@@ -182,6 +194,50 @@ def path_log_ratio(grid, bank, beta, S, p, use_crossings, periodic):
 
 
 @njit(cache=True)
+def stored_local_estimate(
+    grid, bank, cams, beta, S, k, ix, iy, iz, weight, event_albedo, mode, image, residual,
+    gradient,
+):
+    """:func:`~cloudct.mc.forward.local_estimate` of event record k from its stored camera
+    connections ("connections" storage): the pixels, angles and 1 / (r^2 Omega) were kept,
+    and the optical depth to the camera is the stored frozen part plus beta x length over
+    the stored crossings of variable voxels. Same modes, values and deposit order as
+    ``local_estimate`` (bitwise equal when every voxel is variable)."""
+    ncols = cams.ncols
+    nrows = cams.nrows
+    weighted_sum = 0.0
+    for c in range(S.connection_start[k], S.connection_start[k + 1]):
+        pixel = S.connection_pixel[c]
+        col = pixel % ncols
+        row = (pixel // ncols) % nrows
+        view = pixel // (ncols * nrows)
+        if mode != RENDER and residual[view, row, col] == 0.0:
+            continue
+        mu = S.connection_cosine[c]
+        angular = connection_angular(grid, bank, ix, iy, iz, mu, event_albedo)
+        tau = S.connection_tau[c]
+        for q in range(S.connection_crossing_start[c], S.connection_crossing_start[c + 1]):
+            tau += beta[S.connection_voxel[q]] * S.connection_length[q]
+        value = weight * angular * math.exp(-tau) * S.connection_factor[c]
+        if mode == RENDER:
+            add_to(image, view, row, col, value)
+            continue
+        value *= residual[view, row, col]
+        weighted_sum += value
+        if mode == GRADIENT and value != 0.0:
+            flat = gradient.reshape((1, 1, gradient.size))
+            for q in range(S.connection_crossing_start[c], S.connection_crossing_start[c + 1]):
+                add_to(flat, 0, 0, S.connection_voxel[q], -value * S.connection_length[q])
+            if event_albedo < 0.0:
+                add_to(
+                    gradient, ix, iy, iz,
+                    value * scattering_log_derivative(grid, bank, CLOUD, ix, iy, iz, mu),
+                )
+    return weighted_sum
+
+
+
+@njit(cache=True)
 def replay_path(
     grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power, beta, S,
     p, use_crossings, mode, image, residual, gradient, trail, scratch,
@@ -222,7 +278,12 @@ def replay_path(
             event_albedo = -1.0
         s_event = 0.0
         w = weight * math.exp(log_r)
-        if w != 0.0:
+        if w != 0.0 and S.connection_start.size > 1:
+            s_event = stored_local_estimate(
+                grid, bank, cams, beta, S, k, ix, iy, iz, w, event_albedo, mode, image,
+                residual, gradient,
+            )
+        elif w != 0.0:
             s_event = local_estimate(
                 grid, bank, cams, copies, periodic, S.position[0, k], S.position[1, k],
                 S.position[2, k], ix, iy, iz, S.direction[0, k], S.direction[1, k],
@@ -454,3 +515,104 @@ def write_crossings(grid, S, periodic, per_batch):
                 if trail.count[0] != c1 - c0:
                     bad += 1
     return bad
+
+
+@njit(cache=True)
+def record_connections(
+    grid, cams, copies, periodic, beta, variable, S, k, trail, write, first_connection,
+    first_crossing,
+):
+    """The camera connections of event record k (the local estimates of
+    :func:`~cloudct.mc.forward.local_estimate`, in its order and with its skips), each
+    walked to the top of the medium under the reference: its crossings of ``variable``
+    voxels are kept, the optical depth of the others (``beta`` of the reference) summed.
+
+    Counts when not ``write``; otherwise writes connection rows from ``first_connection``
+    and their crossings from ``first_crossing`` (the CSR offsets of the counting pass).
+    Returns ``(connections, variable crossings)``.
+    """
+    ny = grid.y_edges.size - 1
+    nz = grid.z_edges.size - 1
+    lx = grid.x_edges[-1] - grid.x_edges[0]
+    ly = grid.y_edges[-1] - grid.y_edges[0]
+    px = S.position[0, k]
+    py = S.position[1, k]
+    pz = S.position[2, k]
+    ix, iy, iz = decode_voxel(S.voxel[k], ny, nz)
+    ground = S.kind[k] == GROUND
+    n = 0
+    q = first_crossing
+    for view in range(cams.position.shape[0]):
+        for i in range(copies[view, 0], copies[view, 1] + 1):
+            for j in range(copies[view, 2], copies[view, 3] + 1):
+                row, col, cx, cy, cz, inv_r2_omega = project(
+                    cams, view, px + i * lx, py + j * ly, pz
+                )
+                if row < 0 or (ground and cz <= 0.0):
+                    continue
+                trail.count[0] = 0
+                march(grid, px, py, pz, cx, cy, cz, ix, iy, iz, INF, periodic, None, 0.0, INF,
+                      trail)
+                if trail.count[0] > trail.voxel.size:  # a longer ray: walk it with more room
+                    trail = Trail(
+                        np.zeros(2 * trail.count[0], trail.voxel.dtype),
+                        np.zeros(2 * trail.count[0]), trail.count, trail.distance,
+                    )
+                    trail.count[0] = 0
+                    march(grid, px, py, pz, cx, cy, cz, ix, iy, iz, INF, periodic, None, 0.0,
+                          INF, trail)
+                frozen = 0.0
+                c = first_connection + n
+                if write:
+                    S.connection_crossing_start[c] = q
+                for m in range(trail.count[0]):
+                    v = trail.voxel[m]
+                    if variable[v]:
+                        if write:
+                            S.connection_voxel[q] = v
+                            S.connection_length[q] = trail.length[m]
+                        q += 1
+                    else:
+                        frozen += beta[v] * trail.length[m]
+                if write:
+                    S.connection_pixel[c] = (view * cams.nrows + row) * cams.ncols + col
+                    if ground:
+                        S.connection_cosine[c] = cz
+                    else:
+                        S.connection_cosine[c] = (
+                            S.direction[0, k] * cx + S.direction[1, k] * cy
+                            + S.direction[2, k] * cz
+                        )
+                    S.connection_factor[c] = inv_r2_omega
+                    S.connection_tau[c] = frozen
+                    S.connection_crossing_start[c + 1] = q
+                n += 1
+    return n, q - first_crossing
+
+
+@njit(parallel=True, cache=True)
+def connection_batches(
+    grid, cams, copies, periodic, beta, variable, S, per_batch, trail_capacity, write,
+    connections, crossings,
+):
+    """Count (``write`` False: per record into ``connections`` and ``crossings``) or write
+    (``write`` True: from the CSR offsets ``S.connection_start`` and ``crossings``, now the
+    first crossing row of each record) the camera connections of every event record."""
+    nbatch = S.slot.size // per_batch
+    for b in prange(nbatch):
+        trail = Trail(
+            np.zeros(trail_capacity, S.voxel.dtype), np.zeros(trail_capacity),
+            np.zeros(1, np.int64), np.zeros(1),
+        )
+        for i in range(b * per_batch, (b + 1) * per_batch):
+            for k in range(S.path_start[i] + 1, S.path_start[i + 1]):
+                if S.kind[k] != SCATTER and S.kind[k] != GROUND:
+                    continue
+                first = S.connection_start[k] if write else 0
+                n, m = record_connections(
+                    grid, cams, copies, periodic, beta, variable, S, k, trail, write, first,
+                    crossings[k] if write else 0,
+                )
+                if not write:
+                    connections[k] = n
+                    crossings[k] = m

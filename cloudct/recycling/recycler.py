@@ -34,6 +34,7 @@ from typing import NamedTuple
 import numpy as np
 import xarray as xr
 
+from cloudct.mc.backend import resolve_backend
 from cloudct.mc.scene import Scene
 from cloudct.medium import cell_edges
 from cloudct.recycling.policy import AdaptiveESS, Policy
@@ -96,15 +97,27 @@ class Recycler:
         :class:`~cloudct.recycling.policy.AdaptiveESS` (the default, 0.5 and 50).
     memory_budget
         Bytes for both stores together (None: no limit), shared in proportion to their
-        photons; ``storage="auto"`` stores voxel crossings where they fit.
+        photons; ``storage="auto"`` stores what fits (see
+        :data:`~cloudct.recycling.store.AUTO_CONNECTIONS_BUDGET`).
     storage
-        ``"auto"``, ``"crossings"`` or ``"lean"`` (see :mod:`cloudct.recycling.store`).
+        ``"auto"``, ``"connections"``, ``"crossings"`` or ``"lean"`` (see
+        :mod:`cloudct.recycling.store`).
+    variable
+        bool[x, y, z]: the voxels whose extinction the evaluated media may change (default:
+        all), e.g. a retrieval's mask; camera connections keep only their crossings.
     seed
         Seed of all the recycler's random streams.
     rr_depth, rr_survival
         Russian roulette, as for :func:`cloudct.mc.render.render`.
     sort
-        Sort each store's paths by length (path sorting).
+        Sort each store's paths by length (path sorting); default: on the GPU only (on the
+        CPU sorting does not speed the replay up, and it costs a copy of the store).
+    backend
+        ``"cpu"``, ``"cuda"`` or ``"auto"``: where the stored paths are re-evaluated (and
+        their correction factors computed) as for :func:`cloudct.mc.render.render`; resolved
+        once, here (``"auto"`` warns once where it falls back to the CPU). With ``"cuda"``
+        each store is copied to the GPU on its first replay and kept there while it is in
+        use. Paths are recorded on the CPU.
     """
 
     def __init__(
@@ -120,8 +133,10 @@ class Recycler:
         seed: int = 0,
         rr_depth: int = 100,
         rr_survival: float = 0.95,
-        sort: bool = True,
+        sort: bool | None = None,
         progress: bool | None = False,
+        variable: np.ndarray | None = None,
+        backend: str = "cpu",
     ) -> None:
         gradient_photons = photons if gradient_photons is None else gradient_photons
         if int(photons) < 1 or int(gradient_photons) < 1:
@@ -133,11 +148,13 @@ class Recycler:
         self.policy = AdaptiveESS() if policy is None else policy
         self.memory_budget = memory_budget
         self.storage = storage
+        self.variable = variable
         self.seed = int(seed)
         self.rr_depth = int(rr_depth)
         self.rr_survival = float(rr_survival)
-        self.sort = bool(sort)
         self.progress = progress
+        self.backend = resolve_backend(backend)
+        self.sort = self.backend == "cuda" if sort is None else bool(sort)
         self._slots = {
             "images": _Slot(int(photons)),
             "gradient": _Slot(int(gradient_photons)),
@@ -192,19 +209,20 @@ class Recycler:
             medium, self.scene, photons=photons, seed=seed, batches=self.batches,
             storage=self.storage, memory_budget=memory_budget, sort=self.sort,
             rr_depth=self.rr_depth, rr_survival=self.rr_survival, progress=self.progress,
+            variable=self.variable,
         )
 
     def _release_store(self, store) -> None:
         """Free a store about to be replaced (None: none yet; here dropping it is enough)."""
 
     def _log_weights(self, store, medium: xr.Dataset) -> np.ndarray:
-        return correction_log_weights(store, medium)
+        return correction_log_weights(store, medium, self.backend)
 
     def _replay_images(self, store, medium: xr.Dataset) -> tuple[np.ndarray, dict]:
-        return replay_images(store, medium, self.progress)
+        return replay_images(store, medium, self.progress, self.backend)
 
     def _replay_gradient(self, store, medium: xr.Dataset, residual: np.ndarray) -> tuple:
-        return replay_gradient(store, medium, residual, self.progress)
+        return replay_gradient(store, medium, residual, self.progress, self.backend)
 
     def _extra_info(self) -> dict:
         """Entries that an evaluation's info adds (none here)."""

@@ -8,6 +8,11 @@
   with respect to the cloud extinction of every voxel (albedo and phase fixed);
   :func:`replay_batch_gradients`: the same per batch.
 
+Every function takes ``backend="cpu" | "cuda" | "auto"`` (default ``"cpu"``), as
+:func:`cloudct.mc.render.render` does: ``"cuda"`` re-evaluates the paths on the GPU, one
+thread per path (:mod:`cloudct.recycling.cuda_replay`), ``"auto"`` there where a GPU is
+available, else on the CPU with a one-line warning.
+
 Each local estimate uses the correction factor of its path's prefix (the segments up to
 the event and the directions sampled before it), unbiased like the whole-path factor and
 with a smaller variance. The estimates are unbiased for any M_t on the store's grid whose
@@ -22,6 +27,7 @@ import math
 import numpy as np
 import xarray as xr
 
+from cloudct.mc.backend import resolve_backend
 from cloudct.mc.forward import GRADIENT, RENDER
 from cloudct.mc.gradient import check_residual
 from cloudct.mc.render import KernelInputs, images_dataset, kernel_inputs
@@ -39,7 +45,16 @@ def _inputs(store: PathStore, medium: xr.Dataset) -> tuple[KernelInputs, np.ndar
     check_not_empty(store)
     check_same_grid(store, cell_edges(medium))
     k = kernel_inputs(medium, store.scene)
-    return k, flat_total_extinction(k.grid)
+    beta = flat_total_extinction(k.grid)
+    if store.variable is not None:
+        changed = beta[~store.variable.ravel()] != store.frozen_extinction
+        if changed.any():
+            raise ValueError(
+                f"the medium's extinction differs from the reference's in {changed.sum()} "
+                "voxels outside the store's variable mask; record the paths with a mask "
+                "holding every voxel that may change"
+            )
+    return k, beta
 
 
 def effective_sample_size(log_r: np.ndarray) -> float:
@@ -52,13 +67,20 @@ def effective_sample_size(log_r: np.ndarray) -> float:
     return float(r.sum() ** 2 / np.sum(r * r))
 
 
-def correction_log_weights(store: PathStore, medium: xr.Dataset) -> np.ndarray:
+def correction_log_weights(
+    store: PathStore, medium: xr.Dataset, backend: str = "cpu"
+) -> np.ndarray:
     """log r of every stored path under ``medium``, in photon order (exactly 0 under the
     reference medium). Cheap: no local estimates, only the segments' optical depths."""
+    backend = resolve_backend(backend)
     k, beta = _inputs(store, medium)
+    if backend == "cuda":
+        from cloudct.recycling.cuda_replay import log_weights
+
+        return log_weights(store, k, beta, store.has_crossings)
     log_r = np.empty(store.paths)
     log_ratio_batches(
-        k.grid, k.bank, beta, store.arrays, store.storage == "crossings", k.periodic,
+        k.grid, k.bank, beta, store.arrays, store.has_crossings, k.periodic,
         store.per_batch, log_r,
     )
     return log_r
@@ -66,24 +88,33 @@ def correction_log_weights(store: PathStore, medium: xr.Dataset) -> np.ndarray:
 
 def _replay(
     store: PathStore, medium: xr.Dataset, mode: int, residual: np.ndarray | None,
-    progress: bool | None, desc: str,
+    progress: bool | None, desc: str, backend: str,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
+    backend = resolve_backend(backend)
     k, beta = _inputs(store, medium)
     b = store.batches
     log_r = np.empty(store.paths)
     events = np.zeros(b, dtype=np.int64)
     common = (
         k.grid, k.bank, k.cams, k.copies, k.periodic, k.ground, store.rr_depth,
-        store.rr_survival, k.sun.power, beta, store.arrays, store.storage == "crossings",
+        store.rr_survival, k.sun.power, beta, store.arrays, store.has_crossings,
         store.per_batch,
     )
     if mode == RENDER:
         out = np.zeros((b, len(store.scene.cameras), k.cams.nrows, k.cams.ncols))
+    else:
+        out = np.zeros((b, *k.grid.extinction.shape[1:]))
+    if backend == "cuda":
+        from cloudct.recycling.cuda_replay import ReplayLauncher
+
+        run = ReplayLauncher(
+            store, k, beta, store.has_crossings, mode, residual, out, log_r, events
+        )
+    elif mode == RENDER:
 
         def run(first: int, last: int) -> None:
             replay_render_batches(*common, first, last, out, log_r, events, store.max_records)
     else:
-        out = np.zeros((b, *k.grid.extinction.shape[1:]))
         # scratch room for the crossings of a camera connection (longer ones: walked twice)
         trail_capacity = 4 * sum(e.size - 1 for e in k.edges) + 16
 
@@ -94,6 +125,8 @@ def _replay(
             )
 
     wall = run_batches(run, store.per_batch, b, progress, unit="path", desc=desc)
+    if mode == GRADIENT and store.variable is not None:
+        out[:, ~store.variable] = 0.0  # connections hold no crossings of frozen voxels
     ess = effective_sample_size(log_r)
     info = {
         "photons": store.paths,
@@ -104,27 +137,31 @@ def _replay(
         "storage": store.storage,
         "sorted": store.sorted,
         "seed": store.seed,
+        "backend": backend,
     }
     return out / store.per_batch, log_r, info
 
 
 def replay_images(
-    store: PathStore, medium: xr.Dataset, progress: bool | None = False
+    store: PathStore, medium: xr.Dataset, progress: bool | None = False, backend: str = "cpu"
 ) -> tuple[np.ndarray, dict]:
     """Images of ``medium`` from the stored paths, per batch: float64[batches, view, row,
     col] (batch means, like :func:`cloudct.mc.render.render_batches`) and run information
-    (``ess``, ``ess_fraction`` of the whole-path correction factors, ``log_r`` per path)."""
-    batch_images, log_r, info = _replay(store, medium, RENDER, None, progress, "recycled images")
+    (``ess``, ``ess_fraction`` of the whole-path correction factors, ``log_r`` per path,
+    ``backend`` run on)."""
+    batch_images, log_r, info = _replay(
+        store, medium, RENDER, None, progress, "recycled images", backend
+    )
     info["log_r"] = log_r
     return batch_images, info
 
 
 def replay_render(
-    store: PathStore, medium: xr.Dataset, progress: bool | None = False
+    store: PathStore, medium: xr.Dataset, progress: bool | None = False, backend: str = "cpu"
 ) -> xr.Dataset:
     """Images of ``medium`` from the stored paths as an images Dataset (radiance and its
     standard error over batches), like :func:`cloudct.mc.render.render`."""
-    return recycled_images(store, *replay_images(store, medium, progress))
+    return recycled_images(store, *replay_images(store, medium, progress, backend))
 
 
 def recycled_images(store, batch_images: np.ndarray, info: dict) -> xr.Dataset:
@@ -144,6 +181,7 @@ def recycled_images(store, batch_images: np.ndarray, info: dict) -> xr.Dataset:
         rr_survival=store.rr_survival,
         storage=store.storage,
         ess_fraction=info["ess_fraction"],
+        backend=info.get("backend", "cpu"),
     )
 
 
@@ -152,12 +190,13 @@ def replay_batch_gradients(
     medium: xr.Dataset,
     residual: np.ndarray,
     progress: bool | None = False,
+    backend: str = "cpu",
 ) -> tuple[np.ndarray, dict]:
     """The gradient of :func:`replay_gradient` per batch: float64[batches, x, y, z] (batch
     means) and run information with ``log_r`` per path, like :func:`replay_images`."""
     residual = check_residual(residual, store.scene)
     batch_means, log_r, info = _replay(
-        store, medium, GRADIENT, residual, progress, "recycled gradient"
+        store, medium, GRADIENT, residual, progress, "recycled gradient", backend
     )
     info["log_r"] = log_r
     return batch_means, info
@@ -168,11 +207,12 @@ def replay_gradient(
     medium: xr.Dataset,
     residual: np.ndarray,
     progress: bool | None = False,
+    backend: str = "cpu",
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """sum_d residual_d dI_d / d beta_cloud per voxel under ``medium`` from the stored paths
     (Eq. 53 with the path score function of Eqs. 44-49). Returns ``(mean, std_error,
     info)`` like :func:`cloudct.mc.gradient.score_function_gradient`."""
-    batch_means, info = replay_batch_gradients(store, medium, residual, progress)
+    batch_means, info = replay_batch_gradients(store, medium, residual, progress, backend)
     return (
         batch_means.mean(axis=0),
         batch_means.std(axis=0, ddof=1) / math.sqrt(store.batches),

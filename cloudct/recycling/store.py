@@ -9,10 +9,18 @@ itself need not be kept. Two storage modes:
 
 - ``"crossings"``: every segment's voxel crossings (flat voxel, length) are stored too, so a
   segment's optical depth under a new medium is a sum over them (fast, memory-hungry);
-- ``"lean"``: segments are walked again through the grid when needed (less memory).
+- ``"lean"``: segments are walked again through the grid when needed (less memory);
+- ``"connections"``: the crossings, and also every event's camera connections (the local
+  estimates' pixels, angles, 1 / (r^2 Omega) and the connection's voxel crossings), so that
+  a re-evaluation walks no ray at all (fastest, most memory). With a ``variable`` mask
+  (the voxels whose extinction may change, e.g. a retrieval's cloud hull) a connection keeps
+  only its crossings of variable voxels and the optical depth of the others, which the
+  re-evaluations then require to be unchanged.
 
-Both give bitwise identical results. ``"auto"`` picks ``"crossings"`` when it fits the
-memory budget and ``"lean"`` otherwise.
+All modes give bitwise identical results (``"connections"`` with a mask: to rounding, the
+frozen part of each optical depth being summed first). ``"auto"`` picks the first of
+``"connections"`` (within :data:`AUTO_CONNECTIONS_BUDGET` when no budget is given),
+``"crossings"`` and ``"lean"`` that fits the memory budget.
 
 Recording traces every photon twice with the same counter-based random streams (same
 photon index and seed, same path): a first pass counts each path's records, a cumulative
@@ -43,6 +51,7 @@ from cloudct.mc.render import kernel_inputs, run_in_rounds
 from cloudct.mc.scene import Scene
 from cloudct.recycling.kernels import (
     StoreArrays,
+    connection_batches,
     count_records,
     flat_total_extinction,
     measure_segments,
@@ -51,7 +60,10 @@ from cloudct.recycling.kernels import (
     write_records,
 )
 
-STORAGE = ("auto", "crossings", "lean")
+STORAGE = ("auto", "connections", "crossings", "lean")
+
+#: Memory that ``storage="auto"`` lets camera connections take when no budget is given.
+AUTO_CONNECTIONS_BUDGET = 2 * 2**30
 
 #: Bytes of one record besides the voxel index: position and direction (6 float64),
 #: length, the two reference terms (3 float64) and the kind (int8).
@@ -71,12 +83,19 @@ def voxel_dtype(shape: tuple[int, int, int]) -> type:
 
 def lean_bytes(records: int, paths: int, voxel_size: int) -> int:
     """Bytes of a lean store with ``records`` records of ``paths`` paths."""
-    return records * (RECORD_BYTES + voxel_size) + paths * PATH_BYTES + 8 + 8
+    return records * (RECORD_BYTES + voxel_size) + paths * PATH_BYTES + 4 * 8  # + 4 CSR ends
 
 
 def crossings_bytes(records: int, crossings: int, voxel_size: int) -> int:
     """Bytes that the crossings add to a lean store (CSR offsets and the crossings)."""
     return records * 8 + crossings * (voxel_size + 8)
+
+
+def connections_bytes(records: int, connections: int, crossings: int, voxel_size: int) -> int:
+    """Bytes that camera connections add to a crossings store: CSR offsets, pixel (int32),
+    cosine, 1 / (r^2 Omega) and frozen optical depth (float64) per connection, and the
+    crossings of variable voxels."""
+    return records * 8 + connections * (4 + 3 * 8 + 8) + crossings * (voxel_size + 8)
 
 
 @dataclass
@@ -100,6 +119,10 @@ class PathStore:
     storage: str
     sorted: bool = False
     info: dict = field(default_factory=dict)
+    #: "connections" storage with a mask: the variable voxels (bool[x, y, z]) and the
+    #: reference's total extinction of the frozen ones (flat, in voxel order)
+    variable: np.ndarray | None = None
+    frozen_extinction: np.ndarray | None = None
 
     @property
     def paths(self) -> int:
@@ -121,6 +144,16 @@ class PathStore:
     def crossings(self) -> int:
         """Number of stored voxel crossings (0 for lean storage)."""
         return int(self.arrays.crossing_voxel.size)
+
+    @property
+    def has_crossings(self) -> bool:
+        """Whether segment crossings are stored ("crossings" and "connections" storage)."""
+        return self.storage in ("crossings", "connections")
+
+    @property
+    def connections(self) -> int:
+        """Number of stored camera connections (0 unless "connections" storage)."""
+        return int(self.arrays.connection_pixel.size)
 
     @property
     def nbytes(self) -> int:
@@ -150,6 +183,8 @@ class PathStore:
             "records": self.records,
             "events": self.events,
             "crossings": self.crossings,
+            "connections": self.connections,
+            "connection_crossings": int(self.arrays.connection_voxel.size),
             "bytes": self.nbytes,
             "bytes_per_event": self.bytes_per_event,
             "bytes_per_path": self.nbytes / max(self.paths, 1),
@@ -184,19 +219,23 @@ def record_paths(
     progress: bool | None = False,
     first_batch: int = 0,
     nbatch: int | None = None,
+    variable: np.ndarray | None = None,
 ) -> PathStore:
     """Sample ``photons`` forward paths under ``medium`` (the reference) and store them.
 
     ``photons`` is rounded up to a multiple of ``batches``; photon i follows the same path
     as photon i of :func:`cloudct.mc.render.render` with the same seed. ``memory_budget``
     (bytes, None for no limit) bounds the store; ``storage`` is ``"auto"``,
-    ``"crossings"`` or ``"lean"``. A budget that cannot hold the paths raises
+    ``"connections"``, ``"crossings"`` or ``"lean"``. A budget that cannot hold the paths raises
     :class:`MemoryBudgetError`.
 
     ``first_batch`` and ``nbatch`` (default: all) record only batches ``first_batch ..
     first_batch + nbatch - 1`` of the ``batches``: the same paths, as a store of ``nbatch``
     batches (photon ``first_batch * per_batch + j`` at storage index j). With ``nbatch``
     given, the store is a part of a larger recording and may be a single batch.
+
+    ``variable`` (bool[x, y, z], default: every voxel) marks the voxels whose extinction
+    the re-evaluations may change; "connections" storage keeps only their crossings.
     """
     whole = nbatch is None
     nbatch = int(batches) - int(first_batch) if whole else int(nbatch)
@@ -217,6 +256,13 @@ def record_paths(
     start_time = time.perf_counter()
     k = kernel_inputs(medium, scene)
     shape = k.grid.extinction.shape[1:]
+    if variable is not None:
+        variable = np.asarray(variable)
+        if variable.shape != shape or variable.dtype != bool:
+            raise ValueError(
+                f"variable must be a boolean mask of the grid's shape {shape}, got "
+                f"{variable.dtype} {variable.shape}"
+            )
     vdtype = voxel_dtype(shape)
     vsize = np.dtype(vdtype).itemsize
     per_batch = math.ceil(int(photons) / batches)
@@ -254,9 +300,13 @@ def record_paths(
     )
     slot = np.arange(npaths, dtype=np.int64)
     empty_cross = (np.zeros(1, np.int64), np.zeros(0, vdtype), np.zeros(0))
+    empty_connections = (
+        np.zeros(1, np.int64), np.zeros(0, np.int32), np.zeros(0), np.zeros(0), np.zeros(0),
+        np.zeros(1, np.int64), np.zeros(0, vdtype), np.zeros(0),
+    )
     arrays = StoreArrays(
         path_start, slot, record.position, record.direction, record.optical_depth, record.kind,
-        record.voxel, np.empty(nrec), np.empty(nrec), *empty_cross,
+        record.voxel, np.empty(nrec), np.empty(nrec), *empty_cross, *empty_connections,
     )
 
     # segment lengths (from the sampled optical depths) and crossing counts
@@ -286,10 +336,25 @@ def record_paths(
             bad = write_crossings(k.grid, arrays, k.periodic, per_batch)
             if bad:
                 raise RuntimeError(f"{bad} segments crossed a different number of voxels")
-    # the reference medium's terms, computed as every re-evaluation computes them
     beta = flat_total_extinction(k.grid)
+    frozen = None
+    if storage == "connections" and chosen != "crossings":
+        raise MemoryBudgetError(_budget_message(memory_budget, full, "crossings", batches))
+    if storage in ("auto", "connections") and chosen == "crossings":
+        flat_variable = (
+            np.ones(beta.size, dtype=bool) if variable is None else variable.ravel()
+        )
+        budget = memory_budget
+        if budget is None and storage == "auto":
+            budget = AUTO_CONNECTIONS_BUDGET
+        arrays, chosen = _record_connections(
+            k, arrays, beta, flat_variable, per_batch, storage, budget, full, vsize, batches
+        )
+        if chosen == "connections" and not flat_variable.all():
+            frozen = beta[~flat_variable]
+    # the reference medium's terms, computed as every re-evaluation computes them
     reference_terms(
-        k.grid, k.bank, beta, arrays, chosen == "crossings", k.periodic, per_batch,
+        k.grid, k.bank, beta, arrays, chosen != "lean", k.periodic, per_batch,
         arrays.seg_ref, arrays.dir_ref,
     )
     store = PathStore(
@@ -306,11 +371,51 @@ def record_paths(
         info={
             "record_time": 0.0, "memory_budget": memory_budget, "first_batch": int(first_batch),
         },
+        variable=None if frozen is None else variable.copy(),
+        frozen_extinction=frozen,
     )
     if sort:
         store = sort_paths(store)
     store.info["record_time"] = time.perf_counter() - start_time
     return store
+
+
+def _record_connections(
+    k, arrays: StoreArrays, beta: np.ndarray, variable: np.ndarray, per_batch: int,
+    storage: str, budget: float | None, store_bytes: int, voxel_size: int, batches: int,
+) -> tuple[StoreArrays, str]:
+    """Count the camera connections of every event record and, when the store with them
+    fits ``budget``, write them: ``(arrays, "connections")``; else ``(arrays,
+    "crossings")`` (``storage="auto"``) or :class:`MemoryBudgetError`."""
+    nrec = arrays.kind.size
+    capacity = 4 * sum(e.size - 1 for e in k.edges) + 16
+    connections = np.zeros(nrec, dtype=np.int64)
+    crossings = np.zeros(nrec, dtype=np.int64)
+    run = (k.grid, k.cams, k.copies, k.periodic, beta, variable)
+    connection_batches(*run, arrays, per_batch, capacity, False, connections, crossings)
+    nconn = int(connections.sum())
+    ncross = int(crossings.sum())
+    need = store_bytes + connections_bytes(nrec, nconn, ncross, voxel_size)
+    if budget is not None and need > budget:
+        if storage == "connections":
+            raise MemoryBudgetError(_budget_message(budget, need, "connections", batches))
+        return arrays, "crossings"
+    connection_start = np.zeros(nrec + 1, dtype=np.int64)
+    np.cumsum(connections, out=connection_start[1:])
+    first_crossing = np.zeros(nrec, dtype=np.int64)
+    np.cumsum(crossings[:-1], out=first_crossing[1:])
+    arrays = arrays._replace(
+        connection_start=connection_start,
+        connection_pixel=np.empty(nconn, dtype=np.int32),
+        connection_cosine=np.empty(nconn),
+        connection_factor=np.empty(nconn),
+        connection_tau=np.empty(nconn),
+        connection_crossing_start=np.zeros(nconn + 1, dtype=np.int64),
+        connection_voxel=np.empty(ncross, dtype=arrays.voxel.dtype),
+        connection_length=np.empty(ncross),
+    )
+    connection_batches(*run, arrays, per_batch, capacity, True, connections, first_crossing)
+    return arrays, "connections"
 
 
 def run_batches(
@@ -352,7 +457,7 @@ def sort_paths(store: PathStore) -> PathStore:
     photon = store.photon[order]
     slot = np.empty_like(a.slot)
     slot[photon] = np.arange(store.paths, dtype=np.int64)
-    if store.storage == "crossings":
+    if store.has_crossings:
         cross, crossing_start = _gather_ranges(a.crossing_start[rec], a.crossing_start[rec + 1])
         crossing_voxel = a.crossing_voxel[cross]
         crossing_length = a.crossing_length[cross]
@@ -360,7 +465,25 @@ def sort_paths(store: PathStore) -> PathStore:
         crossing_start, crossing_voxel, crossing_length = (
             a.crossing_start, a.crossing_voxel, a.crossing_length,
         )
-    arrays = StoreArrays(
+    connection = {}
+    if store.storage == "connections":
+        conn, connection_start = _gather_ranges(
+            a.connection_start[rec], a.connection_start[rec + 1]
+        )
+        cc, connection_crossing_start = _gather_ranges(
+            a.connection_crossing_start[conn], a.connection_crossing_start[conn + 1]
+        )
+        connection = {
+            "connection_start": connection_start,
+            "connection_pixel": a.connection_pixel[conn],
+            "connection_cosine": a.connection_cosine[conn],
+            "connection_factor": a.connection_factor[conn],
+            "connection_tau": a.connection_tau[conn],
+            "connection_crossing_start": connection_crossing_start,
+            "connection_voxel": a.connection_voxel[cc],
+            "connection_length": a.connection_length[cc],
+        }
+    arrays = a._replace(
         path_start=path_start,
         slot=slot,
         position=np.ascontiguousarray(a.position[:, rec]),
@@ -373,6 +496,7 @@ def sort_paths(store: PathStore) -> PathStore:
         crossing_start=crossing_start,
         crossing_voxel=crossing_voxel,
         crossing_length=crossing_length,
+        **connection,
     )
     return replace(store, arrays=arrays, photon=photon, sorted=True, info=dict(store.info))
 
@@ -403,6 +527,7 @@ __all__ = [
     "SCATTER",
     "STORAGE",
     "MemoryBudgetError",
+    "AUTO_CONNECTIONS_BUDGET",
     "PathStore",
     "record_paths",
     "sort_paths",

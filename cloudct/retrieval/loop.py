@@ -27,7 +27,7 @@ from cloudct.mc.scene import Scene
 from cloudct.medium import validate_medium
 from cloudct.retrieval.loss import loss_and_gradient, pixel_weights
 from cloudct.retrieval.metrics import epsilon_delta
-from cloudct.retrieval.optimizers import make_optimizer, project
+from cloudct.retrieval.optimizers import block_mean, make_optimizer, project
 
 RECYCLING = ("none", "fixed", "adaptive")
 LOG_FIELDS = ("loss", "epsilon", "delta", "seconds", "photons", "stage", "resampled", "ess")
@@ -44,6 +44,7 @@ class RetrievalConfig:
     seed: int = 0
     stages: tuple[int, ...] = (4, 2, 1)  # pixel block sizes, coarse to fine
     stage_photons: tuple[float, ...] = (0.25, 0.5, 1.0)  # photon fraction per stage
+    voxel_blocks: tuple[int, ...] | None = None  # per stage: voxels tied in blocks (None: 1)
     saturation_window: int = 10  # iterations over which the loss must keep decreasing
     saturation_tolerance: float = 0.02  # relative decrease below which the loss saturates
     checkpoint_every: int = 20
@@ -55,8 +56,17 @@ class RetrievalConfig:
     def __post_init__(self) -> None:
         self.stages = tuple(int(s) for s in self.stages)
         self.stage_photons = tuple(float(p) for p in self.stage_photons)
-        if len(self.stages) != len(self.stage_photons) or not self.stages:
-            raise ValueError("stages and stage_photons must have the same, non-zero length")
+        if self.voxel_blocks is None:
+            self.voxel_blocks = (1,) * len(self.stages)
+        self.voxel_blocks = tuple(int(b) for b in self.voxel_blocks)
+        if not self.stages or not (
+            len(self.stages) == len(self.stage_photons) == len(self.voxel_blocks)
+        ):
+            raise ValueError(
+                "stages, stage_photons and voxel_blocks must have the same, non-zero length"
+            )
+        if min(self.voxel_blocks) < 1:
+            raise ValueError(f"voxel_blocks must be >= 1, got {self.voxel_blocks}")
         if self.iterations < 0 or self.photons < 1 or self.checkpoint_every < 1:
             raise ValueError("iterations >= 0, photons >= 1 and checkpoint_every >= 1 needed")
         if self.recycling not in RECYCLING:
@@ -187,6 +197,7 @@ class Retrieval:
             loss, gradient, resampled, ess = result.loss, result.gradient, 1.0, math.nan
         else:
             loss, gradient, resampled, ess = self._recycled_loss_and_gradient(photons)
+        gradient = block_mean(gradient, self.mask, self.config.voxel_blocks[s.stage])
         self.optimizer.state = s.optimizer_state
         s.extinction = self.optimizer.update(s.extinction, gradient, self.mask)
         s.optimizer_state = self.optimizer.state
@@ -209,15 +220,25 @@ class Retrieval:
     def _recycled_loss_and_gradient(self, photons: int) -> tuple[float, np.ndarray, float, float]:
         """Loss and gradient from the stage's recycler (seed paper Alg. 2): stored paths
         re-evaluated under the current medium, resampled when the policy says so."""
-        from cloudct.recycling.recycler import Recycler
-
         s = self.state
         data = self._stage_data[s.stage]
         if self._recycler is None or self._recycler_stage != s.stage:
-            self._recycler = Recycler(
-                Scene.from_dataset(data), photons=photons, policy=self.config.policy(),
+            settings = dict(
+                photons=photons, policy=self.config.policy(), variable=self.mask,
                 seed=self.config.seed * 1_000_003 + 7919 * (s.stage + 1),
             )
+            if self.client is None:
+                from cloudct.recycling.recycler import Recycler
+
+                self._recycler = Recycler(
+                    Scene.from_dataset(data), backend=self.backend, **settings
+                )
+            else:  # the stores live on the workers
+                from cloudct.distributed import DistributedRecycler
+
+                self._recycler = DistributedRecycler(
+                    Scene.from_dataset(data), client=self.client, **settings
+                )
             self._recycler_stage = s.stage
         w = pixel_weights(data)
         measured = np.nan_to_num(data["radiance"].values)

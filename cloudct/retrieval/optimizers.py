@@ -18,6 +18,28 @@ def project(beta: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
     return beta
 
 
+def block_mean(field: np.ndarray, mask: np.ndarray, block: int) -> np.ndarray:
+    """``field`` averaged over the masked voxels of each ``block`` x ``block`` x ``block``
+    block of the grid (edge blocks may be smaller), back on the grid; 0 outside the mask.
+
+    A retrieval stage that ties its voxels in blocks steps every voxel of a block along the
+    block's mean gradient: the coarse grid's gradient, with the Monte Carlo noise of a
+    voxel averaged over the block's voxels.
+    """
+    if block == 1:
+        return np.where(mask, field, 0.0)
+    shape = field.shape
+    ids = [np.arange(n) // block for n in shape]
+    nb = [int(i[-1]) + 1 for i in ids]
+    flat = (ids[0][:, None, None] * nb[1] + ids[1][None, :, None]) * nb[2] + ids[2][None, None, :]
+    flat = np.broadcast_to(flat, shape)[mask]
+    sums = np.bincount(flat, weights=field[mask], minlength=int(np.prod(nb)))
+    counts = np.bincount(flat, minlength=int(np.prod(nb)))
+    out = np.zeros(shape)
+    out[mask] = sums[flat] / counts[flat]
+    return out
+
+
 class Adam:
     """Adam (Kingma & Ba 2014), as in the seed paper: first and second moment decays
     ``beta1`` = 0.9 and ``beta2`` = 0.999, step size ``step`` in 1/km per iteration.

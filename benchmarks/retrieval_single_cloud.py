@@ -1,0 +1,136 @@
+"""Retrieval benchmark on the seed paper's single-cloud scene.
+
+Scene: the bundled RICO cloud 32x37x26 (the ``cloudct render`` default: Mie extinction at
+0.672 micron, air, open boundaries), sun at zenith, the nine 76x76 cameras. Noise-free
+measurements are rendered with ``--measurement-photons`` (cached in ``--work``), the
+initial medium is the space-carved hull with the fitted constant extinction
+(:func:`cloudct.retrieval.carving.carve`), and the retrieval runs for ``--minutes`` of
+iteration wall time (measurement synthesis and carving are not counted).
+
+Reported (JSON at ``--output``): the settings, the machine and load average, the whole
+per-iteration log (loss, epsilon, delta, cumulative seconds, stage, resampling), and
+epsilon/delta at the time marks ``--marks`` (minutes; the last iteration finished by then).
+Usage::
+
+    python benchmarks/retrieval_single_cloud.py --minutes 60 [--recycling none|fixed|adaptive]
+        [--photons 100000] [--step 2.0] [--voxel-blocks 4 2 1] [--output FILE.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+
+from cloudct.mc.render import single_cloud_medium  # noqa: E402
+from cloudct.retrieval.carving import carve, initial_medium  # noqa: E402
+from cloudct.retrieval.loop import Retrieval, RetrievalConfig  # noqa: E402
+from data_synth.measurements import (  # noqa: E402
+    load_measurements,
+    save_measurements,
+    synthesize_measurements,
+)
+
+
+def measurements_for(truth, photons: int, work: Path):
+    """Noise-free measurements of the truth, rendered once and cached."""
+    path = work / f"single_cloud_measurements_{photons}.nc"
+    if path.exists():
+        return load_measurements(path)
+    work.mkdir(parents=True, exist_ok=True)
+    measurements = synthesize_measurements(truth, photons=photons, seed=1)
+    save_measurements(measurements, path, overwrite=True)
+    return measurements
+
+
+def at_marks(log: dict, marks_s: list[float]) -> dict:
+    """epsilon, delta and loss of the last iteration finished by each time mark."""
+    seconds = np.asarray(log["seconds"])
+    out = {}
+    for mark in marks_s:
+        done = np.nonzero(seconds <= mark)[0]
+        key = f"{mark / 60:g}_min"
+        if mark > seconds[-1] * 1.001 + 1.0 or done.size == 0:
+            out[key] = None  # the run did not last that long
+            continue
+        i = int(done[-1])
+        out[key] = {
+            "iteration": i + 1, "seconds": float(seconds[i]), "epsilon": log["epsilon"][i],
+            "delta": log["delta"][i], "loss": log["loss"][i],
+        }
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--minutes", type=float, default=60.0)
+    parser.add_argument("--marks", type=float, nargs="+", default=[15.0, 60.0])
+    parser.add_argument("--measurement-photons", type=int, default=20_000_000)
+    parser.add_argument("--photons", type=int, default=100_000)
+    parser.add_argument("--step", type=float, default=2.0)
+    parser.add_argument("--optimizer", default="adam")
+    parser.add_argument("--stages", type=int, nargs="+", default=[4, 2, 1])
+    parser.add_argument("--stage-photons", type=float, nargs="+", default=[0.25, 0.5, 1.0])
+    parser.add_argument("--voxel-blocks", type=int, nargs="+", default=None)
+    parser.add_argument("--recycling", default="none", choices=["none", "fixed", "adaptive"])
+    parser.add_argument("--period", type=int, default=30)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--work", default=str(HERE / "work"))
+    parser.add_argument("--output", default=str(HERE / "results" / "retrieval_single_cloud.json"))
+    args = parser.parse_args()
+
+    truth = single_cloud_medium()
+    t0 = time.perf_counter()
+    measurements = measurements_for(truth, args.measurement_photons, Path(args.work))
+    synth_s = time.perf_counter() - t0
+    carved = carve(measurements, truth)
+    initial = initial_medium(carved, truth)
+    config = RetrievalConfig(
+        iterations=1_000_000, photons=args.photons, optimizer=args.optimizer, step=args.step,
+        seed=args.seed, stages=tuple(args.stages), stage_photons=tuple(args.stage_photons),
+        voxel_blocks=None if args.voxel_blocks is None else tuple(args.voxel_blocks),
+        time_limit=60.0 * args.minutes, recycling=args.recycling, period=args.period,
+        checkpoint_every=10**9,
+    )
+    result = {
+        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+        "numba_threads": int(os.environ.get("NUMBA_NUM_THREADS", os.cpu_count())),
+        "load_average_start": os.getloadavg(),
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+        "command": " ".join(sys.argv),
+        "measurement_photons": args.measurement_photons,
+        "measurement_seconds": synth_s,
+        "config": {k: v for k, v in vars(config).items()},
+    }
+    run = Retrieval(measurements, initial, config, truth=truth)
+    eps0 = run.state.extinction
+    from cloudct.retrieval.metrics import epsilon_delta
+
+    result["initial"] = dict(zip(("epsilon", "delta"), epsilon_delta(run.truth, eps0),
+                                 strict=True))
+    run.run(progress=True)
+    log = {k: [float(x) for x in v] for k, v in run.state.log.items()}
+    result["log"] = log
+    result["iterations"] = run.state.iteration
+    result["final"] = {"epsilon": log["epsilon"][-1], "delta": log["delta"][-1],
+                       "loss": log["loss"][-1], "seconds": log["seconds"][-1],
+                       "stage": log["stage"][-1]}
+    result["marks"] = at_marks(log, [60.0 * m for m in args.marks])
+    result["load_average_end"] = os.getloadavg()
+    Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.output).write_text(json.dumps(result, indent=1))
+    print(json.dumps({k: result[k] for k in ("initial", "final", "marks", "iterations")},
+                     indent=1))
+
+
+if __name__ == "__main__":
+    main()
