@@ -322,3 +322,26 @@ def test_cli_render_and_retrieve_on_workers(client, tmp_path):
     r1, r2 = xr.load_dataset(tmp_path / "r1.nc"), xr.load_dataset(tmp_path / "r2.nc")
     assert same(r1.cloud_extinction.values, r2.cloud_extinction.values)
     assert same(r1.log_loss.values, r2.log_loss.values)
+
+
+def test_local_cluster_keeps_the_distributed_configuration_in_a_fresh_process():
+    """Starting the first local cluster of a process (distributed not yet imported) keeps
+    dask's "distributed" configuration section (a temporary setting once removed it, and
+    the scheduler then failed on its own defaults)."""
+    import subprocess
+
+    code = (
+        "import dask, dask.config\n"
+        "from cloudct.distributed import close_client, local_cluster\n"
+        "client = local_cluster(1, threads=1)\n"
+        "print(dask.config.get('distributed.scheduler.events-cleanup-delay'))\n"
+        "print(dask.config.get('distributed.scheduler.work-stealing'))\n"
+        "close_client(client)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+    )
+    assert out.returncode == 0, out.stderr
+    assert "KeyError" not in out.stderr
+    assert out.stdout.split()[-1] == "True"  # the temporary setting is undone

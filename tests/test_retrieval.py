@@ -10,7 +10,7 @@ from test_score_gradient import gradient_medium, gradient_scene
 from cloudct.mc.render import render
 from cloudct.retrieval.loop import Retrieval, RetrievalConfig, coarse_measurements
 from cloudct.retrieval.metrics import epsilon_delta
-from cloudct.retrieval.optimizers import Adam, MomentumSGD, project
+from cloudct.retrieval.optimizers import Adam, MomentumSGD, block_mean, project
 
 
 def test_adam_follows_its_formula():
@@ -37,6 +37,27 @@ def test_sgd_momentum_and_projection():
     # u = 0.9 * (1, 4, 0) + (1, 0, 0) = (1.9, 3.6, 0); x1 - 0.5 u = (1.55, -1.8, 0)
     np.testing.assert_allclose(x2, [1.55, 0.0, 0.0])
     assert np.array_equal(project(np.array([-1.0, 2.0]), None), [0.0, 2.0])
+
+
+def test_block_mean_ties_the_masked_voxels_of_each_block():
+    rng = np.random.default_rng(3)
+    field = rng.normal(size=(5, 4, 3))
+    mask = rng.uniform(size=field.shape) < 0.7
+    assert np.array_equal(block_mean(field, mask, 1), np.where(mask, field, 0.0))
+    tied = block_mean(field, mask, 2)
+    assert np.all(tied[~mask] == 0.0)
+    for bx in range(3):  # blocks 2 x 2 x 2, smaller at the edges (5 = 2 + 2 + 1, 3 = 2 + 1)
+        for by in range(2):
+            for bz in range(2):
+                sl = (slice(2 * bx, 2 * bx + 2), slice(2 * by, 2 * by + 2),
+                      slice(2 * bz, 2 * bz + 2))
+                inside = mask[sl]
+                if inside.any():
+                    np.testing.assert_allclose(tied[sl][inside], field[sl][inside].mean())
+    # the sum over the mask is kept: a tied step moves the block's total like the field
+    np.testing.assert_allclose(tied[mask].sum(), field[mask].sum())
+    with pytest.raises(ValueError, match="voxel_blocks"):
+        RetrievalConfig(voxel_blocks=(2, 1))
 
 
 def test_epsilon_delta():

@@ -118,6 +118,9 @@ def local_cluster(
     """
     import dask
 
+    # distributed registers its configuration defaults on import: import it before the
+    # temporary setting, whose exit would otherwise remove the whole "distributed" section
+    _import_distributed()
     with dask.config.set({"distributed.scheduler.work-stealing": False}):
         return _start_local_cluster(workers, threads, gpus, dashboard_address, cluster_kwargs)
 

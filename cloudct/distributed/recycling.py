@@ -5,8 +5,9 @@ batches; each part is a :class:`~cloudct.recycling.store.PathStore` of its batch
 the memory of one worker as the result of a Dask future (recorded there, never sent back).
 Re-evaluations are tasks that depend on a part's future, so the scheduler runs them on the
 worker that holds it: a recycled iteration moves the medium (scattered once to every
-worker), the residual, and the per-batch images and gradients and per-path log correction
-factors (8 bytes per path) back, never the paths. Should a worker die, the scheduler
+worker), the residual, and the per-batch images and gradients and a summary of the
+correction factors (24 bytes per batch, :func:`~cloudct.recycling.replay.weight_summary`)
+back, never the paths: the bytes do not depend on the number of paths. Should a worker die, the scheduler
 re-records its parts elsewhere from the same seed (the futures' lineage): the same paths,
 bitwise.
 
@@ -41,9 +42,10 @@ from cloudct.medium import cell_edges
 from cloudct.recycling.recycler import Evaluation, Recycler
 from cloudct.recycling.replay import (
     correction_log_weights,
-    effective_sample_size,
     replay_batch_gradients,
     replay_images,
+    summary_ess,
+    weight_summary,
 )
 from cloudct.recycling.store import STORAGE, PathStore, check_same_grid, record_paths
 
@@ -71,16 +73,17 @@ def part_summary(store: PathStore) -> dict:
 
 
 def part_log_weights(store: PathStore, medium: xr.Dataset) -> np.ndarray:
-    """log r of the part's paths in photon order."""
+    """:func:`~cloudct.recycling.replay.weight_summary` of the part's paths (per batch)."""
     from cloudct.distributed.core import _fault
 
     _fault("log_weights", store.info.get("first_batch", 0))
-    return correction_log_weights(store, medium)
+    return weight_summary(correction_log_weights(store, medium), store.batches)
 
 
 def part_replay(store: PathStore, medium: xr.Dataset, residual) -> tuple:
     """Per-batch images (``residual`` None) or gradients of the part, batch means as
-    :func:`~cloudct.recycling.replay.replay_images`, with per-path log r and the events."""
+    :func:`~cloudct.recycling.replay.replay_images`, with the per-batch summary of the
+    paths' log r and the events."""
     from cloudct.distributed.core import _fault
 
     _fault("replay", store.info.get("first_batch", 0))
@@ -88,7 +91,7 @@ def part_replay(store: PathStore, medium: xr.Dataset, residual) -> tuple:
         values, info = replay_images(store, medium)
     else:
         values, info = replay_batch_gradients(store, medium, residual)
-    return values, info["log_r"], info["events"], info["wall_time"]
+    return values, info["weight_summary"], info["events"], info["wall_time"]
 
 
 # ------------------------------------------------------------------------------------------
@@ -224,21 +227,21 @@ class DistributedPathStore:
         return results, sum(nbytes(r) for r in results)
 
     def log_weights(self, medium: xr.Dataset) -> tuple[np.ndarray, dict]:
-        """:func:`~cloudct.recycling.replay.correction_log_weights` of all paths, photon
-        order, and the bytes moved."""
+        """The per-batch :func:`~cloudct.recycling.replay.weight_summary` of all paths'
+        correction factors (batch order) and the bytes moved."""
         check_same_grid(self, cell_edges(medium))
         medium_future, sent = self.executor.share(medium, cache=True)
         results, received = self._run(part_log_weights, medium_future, desc="log-weights")
-        log_r = np.concatenate(results)
-        if log_r.size != self.paths:
-            raise DistributedError(f"{log_r.size} of {self.paths} log weights came back")
-        return log_r, {"bytes_to_workers": sent, "bytes_from_workers": received}
+        summary = np.concatenate(results)
+        if summary.shape[0] != self.batches:
+            raise DistributedError(f"{summary.shape[0]} of {self.batches} batches came back")
+        return summary, {"bytes_to_workers": sent, "bytes_from_workers": received}
 
     def replay(self, medium: xr.Dataset, residual: np.ndarray | None = None):
         """Per-batch images (float64[batches, view, row, col], ``residual`` None) or
         per-batch gradients (float64[batches, x, y, z]), batch means as in
-        :mod:`cloudct.recycling.replay`, and info (events, ess, ess_fraction, log_r,
-        wall_time, bytes moved)."""
+        :mod:`cloudct.recycling.replay`, and info (events, ess, ess_fraction,
+        weight_summary, wall_time, bytes moved)."""
         t0 = time.perf_counter()
         check_same_grid(self, cell_edges(medium))
         ex = self.executor
@@ -256,8 +259,8 @@ class DistributedPathStore:
             if r[0].shape[0] != n:
                 raise DistributedError("a part returned the wrong number of batches")
         values = np.concatenate([r[0] for r in results])
-        log_r = np.concatenate([r[1] for r in results])
-        ess = effective_sample_size(log_r)
+        summary = np.concatenate([r[1] for r in results])
+        ess = summary_ess(summary)[0]
         info = {
             "photons": self.paths,
             "events": int(sum(r[2] for r in results)),
@@ -268,7 +271,7 @@ class DistributedPathStore:
             "storage": self.storage,
             "sorted": self.sorted,
             "seed": self.seed,
-            "log_r": log_r,
+            "weight_summary": summary,
             "bytes_to_workers": sent,
             "bytes_from_workers": received,
         }

@@ -40,10 +40,11 @@ from cloudct.medium import cell_edges
 from cloudct.recycling.policy import AdaptiveESS, Policy
 from cloudct.recycling.replay import (
     correction_log_weights,
-    effective_sample_size,
     recycled_images,
     replay_gradient,
     replay_images,
+    summary_ess,
+    weight_summary,
 )
 from cloudct.recycling.store import PathStore, check_same_grid, record_paths
 
@@ -216,7 +217,8 @@ class Recycler:
         """Free a store about to be replaced (None: none yet; here dropping it is enough)."""
 
     def _log_weights(self, store, medium: xr.Dataset) -> np.ndarray:
-        return correction_log_weights(store, medium, self.backend)
+        """The :func:`~cloudct.recycling.replay.weight_summary` of the store's paths."""
+        return weight_summary(correction_log_weights(store, medium, self.backend), store.batches)
 
     def _replay_images(self, store, medium: xr.Dataset) -> tuple[np.ndarray, dict]:
         return replay_images(store, medium, self.progress, self.backend)
@@ -259,9 +261,8 @@ class Recycler:
             else:
                 ess = max_log_r = None
                 if self.policy.uses_ess:
-                    log_r = self._log_weights(slot.store, medium)
-                    ess = effective_sample_size(log_r) / slot.store.paths
-                    max_log_r = float(log_r.max())
+                    ess, max_log_r = summary_ess(self._log_weights(slot.store, medium))
+                    ess /= slot.store.paths
                     checked[name] = {"ess_fraction": ess, "max_ratio": math.exp(max_log_r)}
                 reason = self.policy.resample_reason(slot.age, ess, max_log_r)
             if reason is not None:
