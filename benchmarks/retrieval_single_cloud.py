@@ -82,6 +82,7 @@ def main() -> None:
     parser.add_argument("--stage-photons", type=float, nargs="+", default=[0.25, 0.5, 1.0])
     parser.add_argument("--voxel-blocks", type=int, nargs="+", default=None)
     parser.add_argument("--saturation-window", type=int, default=10)
+    parser.add_argument("--step-decay", type=float, default=1.0)
     parser.add_argument("--recycling", default="none", choices=["none", "fixed", "adaptive"])
     parser.add_argument("--period", type=int, default=30)
     parser.add_argument("--seed", type=int, default=0)
@@ -100,7 +101,7 @@ def main() -> None:
         seed=args.seed, stages=tuple(args.stages), stage_photons=tuple(args.stage_photons),
         voxel_blocks=None if args.voxel_blocks is None else tuple(args.voxel_blocks),
         time_limit=60.0 * args.minutes, recycling=args.recycling, period=args.period,
-        saturation_window=args.saturation_window,
+        saturation_window=args.saturation_window, step_decay=args.step_decay,
         checkpoint_every=10**9,
     )
     result = {

@@ -45,6 +45,7 @@ from cloudct.recycling import (
     replay_render,
     sort_paths,
 )
+from cloudct.recycling.replay import summary_ess, weight_summary
 from cloudct.recycling.store import connections_bytes, crossings_bytes, lean_bytes
 
 BATCHES = 32
@@ -264,6 +265,19 @@ def test_connections_with_a_variable_mask_keep_only_its_crossings(case):
         replay_images(masked, air)
     with pytest.raises(ValueError, match="boolean mask"):
         record_paths(medium, scene, storage="connections", variable=variable[:-1], **kw)
+
+
+def test_effective_sample_size_from_per_batch_summaries():
+    """The ESS and largest ratio combined from per-batch summaries (what Dask workers send
+    back) equal the direct formulas over all paths, also with batches whose r are all 0."""
+    log_r = np.random.default_rng(2).normal(0.0, 2.0, size=(8, 50))
+    log_r[3] = -np.inf  # a batch of paths that the new medium cannot produce
+    r = np.exp(log_r)
+    ess, top = summary_ess(weight_summary(log_r, 8))
+    assert top == log_r.max()
+    assert ess == pytest.approx(r.sum() ** 2 / np.sum(r * r), rel=1e-12)
+    assert effective_sample_size(log_r.ravel(), 8) == ess
+    assert summary_ess(weight_summary(np.full(10, -np.inf), 2))[0] == 0.0
 
 
 def test_effective_sample_size_falls_as_the_medium_departs_from_the_reference():

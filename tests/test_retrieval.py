@@ -106,6 +106,29 @@ def test_checkpoint_resume_continues_exactly(tmp_path, measurements):
     np.testing.assert_array_equal(resumed.state.log["loss"], straight.state.log["loss"])
 
 
+def test_step_decays_when_the_loss_saturates_at_the_last_stage(tmp_path, measurements):
+    config = RetrievalConfig(iterations=0, photons=1_000, stages=(1,), stage_photons=(1.0,),
+                             saturation_window=2, step_decay=0.5)
+    run = Retrieval(measurements, initial_guess(), config)
+    s = run.state
+    s.log["loss"], s.log["stage"] = [1.0, 1.0, 1.0, 1.0], [0.0] * 4
+    run._advance_stage_if_saturated()
+    assert (s.step_scale, s.decayed_at, s.stage) == (0.5, 4, 0)
+    run._advance_stage_if_saturated()  # the window restarts after a decay
+    assert s.step_scale == 0.5
+    s.log["loss"] += [2.0, 1.0, 0.5, 0.25]  # decreasing: no decay
+    s.log["stage"] += [0.0] * 4
+    run._advance_stage_if_saturated()
+    assert s.step_scale == 0.5
+    for key in ("epsilon", "delta", "seconds", "photons", "resampled", "ess"):
+        s.log[key] = [0.0] * 8
+    run.save_checkpoint(tmp_path / "ck.nc")
+    resumed = Retrieval.resume(tmp_path / "ck.nc", measurements, initial_guess())
+    assert (resumed.state.step_scale, resumed.state.decayed_at) == (0.5, 4)
+    with pytest.raises(ValueError, match="step_decay"):
+        RetrievalConfig(step_decay=0.0)
+
+
 def test_checkpoint_from_another_run_is_refused(tmp_path, measurements):
     run = Retrieval(measurements, initial_guess(), RetrievalConfig(iterations=1, **CONFIG))
     run.run(checkpoint=tmp_path / "ck.nc", progress=False)

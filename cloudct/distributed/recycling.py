@@ -7,9 +7,9 @@ Re-evaluations are tasks that depend on a part's future, so the scheduler runs t
 worker that holds it: a recycled iteration moves the medium (scattered once to every
 worker), the residual, and the per-batch images and gradients and a summary of the
 correction factors (24 bytes per batch, :func:`~cloudct.recycling.replay.weight_summary`)
-back, never the paths: the bytes do not depend on the number of paths. Should a worker die, the scheduler
-re-records its parts elsewhere from the same seed (the futures' lineage): the same paths,
-bitwise.
+back, never the paths: the bytes do not depend on the number of paths. Should a worker
+die, the scheduler re-records its parts elsewhere from the same seed (the futures'
+lineage): the same paths, bitwise.
 
 A part's store holds the same paths as the corresponding batches of
 :func:`~cloudct.recycling.store.record_paths` with the same seed (photon index

@@ -47,6 +47,7 @@ class RetrievalConfig:
     voxel_blocks: tuple[int, ...] | None = None  # per stage: voxels tied in blocks (None: 1)
     saturation_window: int = 10  # iterations over which the loss must keep decreasing
     saturation_tolerance: float = 0.02  # relative decrease below which the loss saturates
+    step_decay: float = 1.0  # last stage: step x this whenever the loss saturates (1: never)
     checkpoint_every: int = 20
     time_limit: float | None = None  # seconds; stop after this much wall time
     recycling: str = "none"  # "none", "fixed" (every `period` iterations) or "adaptive" (ESS)
@@ -65,6 +66,8 @@ class RetrievalConfig:
             raise ValueError(
                 "stages, stage_photons and voxel_blocks must have the same, non-zero length"
             )
+        if not 0.0 < self.step_decay <= 1.0:
+            raise ValueError(f"step_decay must be in (0, 1], got {self.step_decay}")
         if min(self.voxel_blocks) < 1:
             raise ValueError(f"voxel_blocks must be >= 1, got {self.voxel_blocks}")
         if self.iterations < 0 or self.photons < 1 or self.checkpoint_every < 1:
@@ -123,6 +126,8 @@ class RetrievalState:
     optimizer_state: dict[str, np.ndarray]
     log: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in LOG_FIELDS})
     elapsed: float = 0.0
+    step_scale: float = 1.0  # the step is config.step x this (step decay)
+    decayed_at: int = 0  # iteration of the last decay (the saturation window restarts)
 
 
 class Retrieval:
@@ -199,6 +204,7 @@ class Retrieval:
             loss, gradient, resampled, ess = self._recycled_loss_and_gradient(photons)
         gradient = block_mean(gradient, self.mask, self.config.voxel_blocks[s.stage])
         self.optimizer.state = s.optimizer_state
+        self.optimizer.step = self.config.step * s.step_scale
         s.extinction = self.optimizer.update(s.extinction, gradient, self.mask)
         s.optimizer_state = self.optimizer.state
         eps, delta = (math.nan, math.nan)
@@ -250,17 +256,26 @@ class Retrieval:
         return loss, ev.gradient, float(ev.info["resampled"]), float(ev.info["ess_fraction"])
 
     def _advance_stage_if_saturated(self) -> None:
+        """Next stage when the loss saturates; at the last stage, a step decay instead."""
         s = self.state
         w = self.config.saturation_window
+        last = s.stage + 1 >= len(self.config.stages)
+        if last and self.config.step_decay == 1.0:
+            return
         stage_losses = [
-            loss for loss, st in zip(s.log["loss"], s.log["stage"], strict=True) if st == s.stage
+            loss for i, (loss, st) in enumerate(zip(s.log["loss"], s.log["stage"], strict=True))
+            if st == s.stage and i >= s.decayed_at
         ]
-        if s.stage + 1 >= len(self.config.stages) or len(stage_losses) < 2 * w:
+        if len(stage_losses) < 2 * w:
             return
         before = np.mean(stage_losses[-2 * w : -w])
         recent = np.mean(stage_losses[-w:])
         if before - recent < self.config.saturation_tolerance * before:
-            s.stage += 1
+            if last:
+                s.step_scale *= self.config.step_decay
+                s.decayed_at = len(s.log["loss"])
+            else:
+                s.stage += 1
 
     def run(
         self, *, checkpoint: str | Path | None = None, progress: bool | None = None
@@ -310,6 +325,7 @@ class Retrieval:
         ds.attrs.update(
             title="cloudct retrieval", run_id=self.id, config=json.dumps(asdict(self.config)),
             iterations_done=s.iteration, stage=s.stage, elapsed_s=s.elapsed,
+            step_scale=s.step_scale, decayed_at=s.decayed_at,
         )
         return ds
 
@@ -360,5 +376,6 @@ class Retrieval:
             iteration=int(ck.attrs["iterations_done"]), stage=int(ck.attrs["stage"]),
             extinction=ck["cloud_extinction"].values.astype(float),
             optimizer_state=optimizer_state, log=log, elapsed=float(ck.attrs["elapsed_s"]),
+            step_scale=float(ck.attrs["step_scale"]), decayed_at=int(ck.attrs["decayed_at"]),
         )
         return run
