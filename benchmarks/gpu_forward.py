@@ -21,7 +21,6 @@ Usage (one command on a GPU machine; writes JSON and a markdown summary)::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -34,6 +33,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent))
 
+from common import write_json_and_markdown  # noqa: E402
 from forward_single_cloud import relative_variance, view_means  # noqa: E402
 
 
@@ -154,12 +154,7 @@ def main() -> int:
             (np.array(g["view_mean"]) - c["view_mean"])
             / np.hypot(g["view_mean_se"], c["view_mean_se"])
         ).tolist()
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(result, indent=2))
-    out.with_suffix(".md").write_text(markdown(result))
-    print(markdown(result))
-    print(f"wrote {out.with_suffix('.json')} and {out.with_suffix('.md')}")
+    write_json_and_markdown(result, args.output, markdown)
     return 0
 
 

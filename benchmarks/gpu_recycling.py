@@ -41,6 +41,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent))
 
+from common import write_json_and_markdown  # noqa: E402
 from gpu_forward import device_name  # noqa: E402
 
 
@@ -219,12 +220,7 @@ def main() -> int:
                     / np.abs(outputs["unsorted"][i]).max())
         for i, what in enumerate(("images", "gradient"))
     }
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(result, indent=2))
-    out.with_suffix(".md").write_text(markdown(result))
-    print(markdown(result))
-    print(f"wrote {out.with_suffix('.json')} and {out.with_suffix('.md')}")
+    write_json_and_markdown(result, args.output, markdown)
     return 0
 
 

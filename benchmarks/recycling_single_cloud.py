@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import sys
 import time
@@ -41,6 +40,8 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
+
+from common import run_header  # noqa: E402
 
 from cloudct.mc.gradient import score_function_gradient  # noqa: E402
 from cloudct.mc.render import render, single_cloud_medium  # noqa: E402
@@ -110,11 +111,7 @@ def main() -> None:
     cloud = truth["cloud_extinction"].values
     mask = cloud > 0
     result = {
-        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
-        "numba_threads": int(os.environ.get("NUMBA_NUM_THREADS", os.cpu_count())),
-        "load_average_start": os.getloadavg(),
-        "date": time.strftime("%Y-%m-%d %H:%M"),
-        "command": " ".join(sys.argv),
+        **run_header(),
         "photons_per_store": n,
         "batches": nb,
     }

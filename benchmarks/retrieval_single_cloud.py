@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -30,6 +29,8 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
+
+from common import run_header  # noqa: E402
 
 from cloudct.mc.render import single_cloud_medium  # noqa: E402
 from cloudct.retrieval.carving import carve, initial_medium  # noqa: E402
@@ -105,11 +106,7 @@ def main() -> None:
         checkpoint_every=10**9,
     )
     result = {
-        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
-        "numba_threads": int(os.environ.get("NUMBA_NUM_THREADS", os.cpu_count())),
-        "load_average_start": os.getloadavg(),
-        "date": time.strftime("%Y-%m-%d %H:%M"),
-        "command": " ".join(sys.argv),
+        **run_header(),
         "measurement_photons": args.measurement_photons,
         "measurement_seconds": synth_s,
         "config": {k: v for k, v in vars(config).items()},

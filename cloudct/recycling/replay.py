@@ -117,7 +117,7 @@ def correction_log_weights(
 def _replay(
     store: PathStore, medium: xr.Dataset, mode: int, residual: np.ndarray | None,
     progress: bool | None, desc: str, backend: str,
-) -> tuple[np.ndarray, np.ndarray, dict]:
+) -> tuple[np.ndarray, dict]:
     backend = resolve_backend(backend)
     k, beta = _inputs(store, medium)
     b = store.batches
@@ -168,8 +168,9 @@ def _replay(
         "seed": store.seed,
         "backend": backend,
         "weight_summary": summary,
+        "log_r": log_r,
     }
-    return out / store.per_batch, log_r, info
+    return out / store.per_batch, info
 
 
 def replay_images(
@@ -179,11 +180,7 @@ def replay_images(
     col] (batch means, like :func:`cloudct.mc.render.render_batches`) and run information
     (``ess``, ``ess_fraction`` of the whole-path correction factors, ``log_r`` per path,
     ``backend`` run on)."""
-    batch_images, log_r, info = _replay(
-        store, medium, RENDER, None, progress, "recycled images", backend
-    )
-    info["log_r"] = log_r
-    return batch_images, info
+    return _replay(store, medium, RENDER, None, progress, "recycled images", backend)
 
 
 def replay_render(
@@ -225,11 +222,7 @@ def replay_batch_gradients(
     """The gradient of :func:`replay_gradient` per batch: float64[batches, x, y, z] (batch
     means) and run information with ``log_r`` per path, like :func:`replay_images`."""
     residual = check_residual(residual, store.scene)
-    batch_means, log_r, info = _replay(
-        store, medium, GRADIENT, residual, progress, "recycled gradient", backend
-    )
-    info["log_r"] = log_r
-    return batch_means, info
+    return _replay(store, medium, GRADIENT, residual, progress, "recycled gradient", backend)
 
 
 def replay_gradient(
