@@ -165,3 +165,32 @@ def test_tiny_retrieval_with_recycling(measurements):
     eps0, _ = epsilon_delta(truth["cloud_extinction"].values,
                             initial_guess()["cloud_extinction"].values)
     assert result["log_epsilon"].values[-5:].mean() < 0.75 * eps0
+
+
+def test_cli_retrieve_passes_the_coarse_to_fine_options(tmp_path, measurements, capsys):
+    """``cloudct retrieve`` sets stages, photons per stage, voxel blocks, saturation window
+    and step decay, and records them in the result's settings."""
+    import json
+
+    import xarray as xr
+
+    from cloudct.cli import main
+    from cloudct.medium import save_medium
+    from data_synth.measurements import save_measurements
+
+    save_measurements(measurements, tmp_path / "meas.nc")
+    save_medium(initial_guess(), tmp_path / "init.nc")
+    out = tmp_path / "r.nc"
+    argv = ["retrieve", str(tmp_path / "meas.nc"), "--init", str(tmp_path / "init.nc"),
+            "--iterations", "2", "--photons", "2000", "--stages", "2", "1",
+            "--stage-photons", "0.5", "2", "--voxel-blocks", "2", "1",
+            "--saturation-window", "4", "--step-decay", "0.5", "-o", str(out)]
+    assert main(argv) == 0
+    config = json.loads(xr.load_dataset(out).attrs["config"])
+    assert config["stages"] == [2, 1] and config["stage_photons"] == [0.5, 2.0]
+    assert config["voxel_blocks"] == [2, 1]
+    assert (config["saturation_window"], config["step_decay"]) == (4, 0.5)
+    assert main(argv) != 0  # the result exists
+    assert "exists (use --overwrite)" in capsys.readouterr().err
+    assert main([*argv[:-2], "--voxel-blocks", "2", "-o", str(tmp_path / "other.nc")]) != 0
+    assert "same, non-zero length" in capsys.readouterr().err

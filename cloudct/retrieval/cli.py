@@ -30,11 +30,14 @@ def _initial_medium(measurements: xr.Dataset, init: str, template: str | None) -
     return initial_medium(carve(measurements, grid), grid)
 
 
-def _config(args: argparse.Namespace) -> RetrievalConfig:
+def _config(args: argparse.Namespace, **settings) -> RetrievalConfig:
+    """The run options of :func:`_add_run_options` (and ``settings``) as a configuration."""
     return RetrievalConfig(
-        iterations=args.iterations, photons=args.photons, optimizer=args.optimizer,
-        step=args.step, seed=args.seed, checkpoint_every=args.checkpoint_every,
+        iterations=args.iterations, photons=args.photons, step=args.step,
         time_limit=args.time_limit, recycling=args.recycling, period=args.period,
+        stages=tuple(args.stages), stage_photons=tuple(args.stage_photons),
+        voxel_blocks=None if args.voxel_blocks is None else tuple(args.voxel_blocks),
+        saturation_window=args.saturation_window, step_decay=args.step_decay, **settings,
     )
 
 
@@ -61,7 +64,9 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
             run = Retrieval.resume(checkpoint, measurements, initial, truth=truth,
                                    iterations=args.iterations, **where)
         else:
-            run = Retrieval(measurements, initial, _config(args), truth=truth, **where)
+            config = _config(args, optimizer=args.optimizer, seed=args.seed,
+                             checkpoint_every=args.checkpoint_every)
+            run = Retrieval(measurements, initial, config, truth=truth, **where)
         result = run.run(checkpoint=checkpoint, progress=None)
     finally:
         if client is not None:
@@ -102,10 +107,7 @@ def _cli_demo(args: argparse.Namespace) -> int:
     initial = initial_medium(carve(measurements, truth), truth)
     save_medium(initial, out / "init.nc", overwrite=True)
     print(f"3/4 retrieving ({args.iterations} iterations, {args.photons} photons each) ...")
-    config = RetrievalConfig(iterations=args.iterations, photons=args.photons, step=args.step,
-                             time_limit=args.time_limit, recycling=args.recycling,
-                             period=args.period)
-    run = Retrieval(measurements, initial, config, truth=truth)
+    run = Retrieval(measurements, initial, _config(args), truth=truth)
     result = run.run(checkpoint=out / "checkpoint.nc", progress=None)
     result.to_netcdf(out / "result.nc")
     print("4/4 report ...")
@@ -127,6 +129,17 @@ def _add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) 
                    help="path recycling policy (seed paper Alg. 2)")
     p.add_argument("--period", type=int, default=30,
                    help="recycling period N_r (fixed) or maximum period (adaptive)")
+    p.add_argument("--stages", type=int, nargs="+", default=list(RetrievalConfig.stages),
+                   help="coarse-to-fine stages: pixel block sizes, coarse to fine")
+    p.add_argument("--stage-photons", type=float, nargs="+",
+                   default=list(RetrievalConfig.stage_photons),
+                   help="per stage: photons per iteration as a multiple of --photons")
+    p.add_argument("--voxel-blocks", type=int, nargs="+", default=None,
+                   help="per stage: voxels tied in blocks of this size (default 1)")
+    p.add_argument("--saturation-window", type=int, default=RetrievalConfig.saturation_window,
+                   help="iterations over which the loss must keep falling to stay in a stage")
+    p.add_argument("--step-decay", type=float, default=RetrievalConfig.step_decay,
+                   help="last stage: multiply the step by this when the loss saturates")
 
 
 def register_cli(subparsers: argparse._SubParsersAction) -> None:
