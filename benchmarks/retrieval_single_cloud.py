@@ -34,7 +34,8 @@ from common import run_header  # noqa: E402
 
 from cloudct.mc.render import single_cloud_medium  # noqa: E402
 from cloudct.retrieval.carving import carve, initial_medium  # noqa: E402
-from cloudct.retrieval.loop import Retrieval, RetrievalConfig  # noqa: E402
+from cloudct.retrieval.cli import add_run_options, config_from_options  # noqa: E402
+from cloudct.retrieval.loop import Retrieval  # noqa: E402
 from data_synth.measurements import (  # noqa: E402
     load_measurements,
     save_measurements,
@@ -76,20 +77,14 @@ def main() -> None:
     parser.add_argument("--minutes", type=float, default=60.0)
     parser.add_argument("--marks", type=float, nargs="+", default=[15.0, 60.0])
     parser.add_argument("--measurement-photons", type=int, default=20_000_000)
-    parser.add_argument("--photons", type=int, default=100_000)
-    parser.add_argument("--step", type=float, default=2.0)
+    add_run_options(parser, iterations=1_000_000, photons=100_000)
     parser.add_argument("--optimizer", default="adam")
-    parser.add_argument("--stages", type=int, nargs="+", default=[4, 2, 1])
-    parser.add_argument("--stage-photons", type=float, nargs="+", default=[0.25, 0.5, 1.0])
-    parser.add_argument("--voxel-blocks", type=int, nargs="+", default=None)
-    parser.add_argument("--saturation-window", type=int, default=10)
-    parser.add_argument("--step-decay", type=float, default=1.0)
-    parser.add_argument("--recycling", default="none", choices=["none", "fixed", "adaptive"])
-    parser.add_argument("--period", type=int, default=30)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--work", default=str(HERE / "work"))
     parser.add_argument("--output", default=str(HERE / "results" / "retrieval_single_cloud.json"))
     args = parser.parse_args()
+    if args.time_limit is not None:
+        parser.error("the run's length is --minutes")
 
     truth = single_cloud_medium()
     t0 = time.perf_counter()
@@ -97,12 +92,8 @@ def main() -> None:
     synth_s = time.perf_counter() - t0
     carved = carve(measurements, truth)
     initial = initial_medium(carved, truth)
-    config = RetrievalConfig(
-        iterations=1_000_000, photons=args.photons, optimizer=args.optimizer, step=args.step,
-        seed=args.seed, stages=tuple(args.stages), stage_photons=tuple(args.stage_photons),
-        voxel_blocks=None if args.voxel_blocks is None else tuple(args.voxel_blocks),
-        time_limit=60.0 * args.minutes, recycling=args.recycling, period=args.period,
-        saturation_window=args.saturation_window, step_decay=args.step_decay,
+    config = config_from_options(
+        args, optimizer=args.optimizer, seed=args.seed, time_limit=60.0 * args.minutes,
         checkpoint_every=10**9,
     )
     result = {

@@ -30,15 +30,17 @@ def _initial_medium(measurements: xr.Dataset, init: str, template: str | None) -
     return initial_medium(carve(measurements, grid), grid)
 
 
-def _config(args: argparse.Namespace, **settings) -> RetrievalConfig:
-    """The run options of :func:`_add_run_options` (and ``settings``) as a configuration."""
-    return RetrievalConfig(
+def config_from_options(args: argparse.Namespace, **settings) -> RetrievalConfig:
+    """The run options of :func:`add_run_options` as a configuration; ``settings``
+    (other :class:`RetrievalConfig` fields) are added and take precedence."""
+    options = dict(
         iterations=args.iterations, photons=args.photons, step=args.step,
         time_limit=args.time_limit, recycling=args.recycling, period=args.period,
         stages=tuple(args.stages), stage_photons=tuple(args.stage_photons),
         voxel_blocks=None if args.voxel_blocks is None else tuple(args.voxel_blocks),
-        saturation_window=args.saturation_window, step_decay=args.step_decay, **settings,
+        saturation_window=args.saturation_window, step_decay=args.step_decay,
     )
+    return RetrievalConfig(**{**options, **settings})
 
 
 def _cli_retrieve(args: argparse.Namespace) -> int:
@@ -64,8 +66,8 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
             run = Retrieval.resume(checkpoint, measurements, initial, truth=truth,
                                    iterations=args.iterations, **where)
         else:
-            config = _config(args, optimizer=args.optimizer, seed=args.seed,
-                             checkpoint_every=args.checkpoint_every)
+            config = config_from_options(args, optimizer=args.optimizer, seed=args.seed,
+                                         checkpoint_every=args.checkpoint_every)
             run = Retrieval(measurements, initial, config, truth=truth, **where)
         result = run.run(checkpoint=checkpoint, progress=None)
     finally:
@@ -107,7 +109,7 @@ def _cli_demo(args: argparse.Namespace) -> int:
     initial = initial_medium(carve(measurements, truth), truth)
     save_medium(initial, out / "init.nc", overwrite=True)
     print(f"3/4 retrieving ({args.iterations} iterations, {args.photons} photons each) ...")
-    run = Retrieval(measurements, initial, _config(args), truth=truth)
+    run = Retrieval(measurements, initial, config_from_options(args), truth=truth)
     result = run.run(checkpoint=out / "checkpoint.nc", progress=None)
     result.to_netcdf(out / "result.nc")
     print("4/4 report ...")
@@ -120,7 +122,9 @@ def _cli_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) -> None:
+def add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) -> None:
+    """The options of a retrieval run (iterations, photons, step, coarse-to-fine stages,
+    recycling) with these defaults for ``--iterations`` and ``--photons``."""
     p.add_argument("--iterations", type=int, default=iterations)
     p.add_argument("--photons", type=int, default=photons, help="photons per iteration")
     p.add_argument("--step", type=float, default=2.0, help="step size [1/km per iteration]")
@@ -159,7 +163,7 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument("--optimizer", choices=("adam", "sgd"), default="adam")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--overwrite", action="store_true")
-    _add_run_options(r, iterations=300, photons=100_000)
+    add_run_options(r, iterations=300, photons=100_000)
     add_distributed_options(r)
     r.set_defaults(func=_cli_retrieve)
 
@@ -177,5 +181,5 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     )
     d.add_argument("-o", "--output", default="cloudct_demo")
     d.add_argument("--measurement-photons", type=int, default=10_000_000)
-    _add_run_options(d, iterations=60, photons=100_000)
+    add_run_options(d, iterations=60, photons=100_000)
     d.set_defaults(func=_cli_demo)
