@@ -1,4 +1,5 @@
-"""Pieces the benchmark scripts share: the run header of a result file and its writing."""
+"""Pieces the benchmark scripts share: the run header of a result file, Markdown tables and
+the writing of results."""
 
 from __future__ import annotations
 
@@ -20,6 +21,15 @@ def run_header() -> dict:
         "date": time.strftime("%Y-%m-%d %H:%M"),
         "command": " ".join(sys.argv),
     }
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
+    """The lines of a Markdown table with this header and these (formatted) cells."""
+    return [
+        "| " + " | ".join(header) + " |",
+        "|" + " --- |" * len(header),
+        *("| " + " | ".join(row) + " |" for row in rows),
+    ]
 
 
 def write_json_and_markdown(result: dict, output: str, markdown: Callable[[dict], str]) -> None:

@@ -26,7 +26,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-from common import run_header, write_json_and_markdown  # noqa: E402
+from common import markdown_table, run_header, write_json_and_markdown  # noqa: E402
 from retrieval_single_cloud import measurements_for  # noqa: E402
 
 from cloudct.mc.drt import drt_gradient  # noqa: E402
@@ -48,15 +48,15 @@ def cosine(a: np.ndarray, b: np.ndarray) -> float:
 def markdown(result: dict) -> str:
     lines = [
         f"{result['machine']}, {result['date']}: `{result['command']}`", "",
-        "| estimator | paths per estimate | s per estimate | voxel blocks | cos(g1, g2) "
-        "| cos(-g, truth - beta) |", "| --- | --- | --- | --- | --- | --- |",
+        *markdown_table(
+            ["estimator", "paths per estimate", "s per estimate", "voxel blocks",
+             "cos(g1, g2)", "cos(-g, truth - beta)"],
+            [[row["estimator"], f"{row['paths']:,}", f"{row['seconds']:.2f}",
+              str(row["voxel_blocks"]), f"{row['cos_independent']:.3f}",
+              f"{row['cos_truth'][0]:.3f}, {row['cos_truth'][1]:.3f}"]
+             for row in result["rows"]],
+        ),
     ]
-    for row in result["rows"]:
-        lines.append(
-            f"| {row['estimator']} | {row['paths']:,} | {row['seconds']:.2f} | "
-            f"{row['voxel_blocks']} | {row['cos_independent']:.3f} | "
-            f"{row['cos_truth'][0]:.3f}, {row['cos_truth'][1]:.3f} |"
-        )
     return "\n".join(lines) + "\n"
 
 

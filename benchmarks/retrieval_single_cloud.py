@@ -14,6 +14,7 @@ Usage::
 
     python benchmarks/retrieval_single_cloud.py --minutes 60 [--recycling none|fixed|adaptive]
         [--photons 100000] [--step 2.0] [--voxel-blocks 4 2 1] [--output FILE.json]
+        [--medium-output FILE.nc]
 """
 
 from __future__ import annotations
@@ -82,6 +83,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--work", default=str(HERE / "work"))
     parser.add_argument("--output", default=str(HERE / "results" / "retrieval_single_cloud.json"))
+    parser.add_argument("--medium-output", default=None,
+                        help="also write the retrieved medium with its log (netCDF)")
     args = parser.parse_args()
     if args.time_limit is not None:
         parser.error("the run's length is --minutes")
@@ -108,7 +111,10 @@ def main() -> None:
 
     result["initial"] = dict(zip(("epsilon", "delta"), epsilon_delta(run.truth, eps0),
                                  strict=True))
-    run.run(progress=True)
+    retrieved = run.run(progress=True)
+    if args.medium_output is not None:
+        Path(args.medium_output).parent.mkdir(parents=True, exist_ok=True)
+        retrieved.to_netcdf(args.medium_output)
     log = {k: [float(x) for x in v] for k, v in run.state.log.items()}
     result["log"] = log
     result["iterations"] = run.state.iteration

@@ -9,7 +9,7 @@ from test_score_gradient import gradient_medium, gradient_scene
 
 from cloudct.mc.render import render
 from cloudct.retrieval.loop import Retrieval, RetrievalConfig, coarse_measurements
-from cloudct.retrieval.metrics import epsilon_delta
+from cloudct.retrieval.metrics import epsilon_delta, epsilon_split
 from cloudct.retrieval.optimizers import Adam, MomentumSGD, block_mean, project
 
 
@@ -67,6 +67,17 @@ def test_epsilon_delta():
     assert eps == pytest.approx(2.0 / 6.0) and delta == pytest.approx(-2.0 / 6.0)
     with pytest.raises(ValueError, match="grids"):
         epsilon_delta(truth, truth[:3])
+
+
+def test_epsilon_split_adds_up_to_epsilon():
+    truth = np.array([1.0, 2.0, 3.0, 0.0, 0.0])
+    estimate = np.array([2.0, 0.5, 3.0, 1.0, 0.5])
+    split = epsilon_split(truth, estimate)
+    # outside the cloud: 1 + 0.5; inside: |1 - 2| + |2 - 0.5|; the cloud holds 5.5
+    assert split == pytest.approx({"outside": 1.5 / 6, "inside": 2.5 / 6, "cloud_mass": 5.5 / 6})
+    assert split["outside"] + split["inside"] == pytest.approx(epsilon_delta(truth, estimate)[0])
+    with pytest.raises(ValueError, match="zero everywhere"):
+        epsilon_split(np.zeros(3), np.ones(3))
 
 
 def test_coarse_measurements_are_block_means():
@@ -129,6 +140,21 @@ def test_step_decays_when_the_loss_saturates_at_the_last_stage(tmp_path, measure
         RetrievalConfig(step_decay=0.0)
 
 
+def test_each_stage_steps_with_its_own_step(measurements):
+    config = RetrievalConfig(iterations=0, photons=1_000, step=2.0, stages=(2, 1),
+                             stage_photons=(1.0, 1.0), stage_steps=(1.0, 0.25), step_decay=0.5)
+    run = Retrieval(measurements, initial_guess(), config)
+    run.step()
+    assert run.optimizer.step == 2.0
+    run.state.stage, run.state.step_scale = 1, 0.5  # the last stage, its step decayed once
+    run.step()
+    assert run.optimizer.step == 2.0 * 0.25 * 0.5
+    with pytest.raises(ValueError, match="stage_steps"):
+        RetrievalConfig(stages=(2, 1), stage_photons=(1.0, 1.0), stage_steps=(1.0,))
+    with pytest.raises(ValueError, match="stage_steps must be > 0"):
+        RetrievalConfig(stages=(1,), stage_photons=(1.0,), stage_steps=(0.0,))
+
+
 def test_checkpoint_from_another_run_is_refused(tmp_path, measurements):
     run = Retrieval(measurements, initial_guess(), RetrievalConfig(iterations=1, **CONFIG))
     run.run(checkpoint=tmp_path / "ck.nc", progress=False)
@@ -168,8 +194,8 @@ def test_tiny_retrieval_with_recycling(measurements):
 
 
 def test_cli_retrieve_passes_the_coarse_to_fine_options(tmp_path, measurements, capsys):
-    """``cloudct retrieve`` sets stages, photons per stage, voxel blocks, saturation window
-    and step decay, and records them in the result's settings."""
+    """``cloudct retrieve`` sets stages, photons per stage, voxel blocks, saturation window,
+    step decay and steps per stage, and records them in the result's settings."""
     import json
 
     import xarray as xr
@@ -184,13 +210,41 @@ def test_cli_retrieve_passes_the_coarse_to_fine_options(tmp_path, measurements, 
     argv = ["retrieve", str(tmp_path / "meas.nc"), "--init", str(tmp_path / "init.nc"),
             "--iterations", "2", "--photons", "2000", "--stages", "2", "1",
             "--stage-photons", "0.5", "2", "--voxel-blocks", "2", "1",
-            "--saturation-window", "4", "--step-decay", "0.5", "-o", str(out)]
+            "--saturation-window", "4", "--step-decay", "0.5", "--stage-steps", "1", "0.25",
+            "-o", str(out)]
     assert main(argv) == 0
     config = json.loads(xr.load_dataset(out).attrs["config"])
     assert config["stages"] == [2, 1] and config["stage_photons"] == [0.5, 2.0]
-    assert config["voxel_blocks"] == [2, 1]
+    assert config["voxel_blocks"] == [2, 1] and config["stage_steps"] == [1.0, 0.25]
     assert (config["saturation_window"], config["step_decay"]) == (4, 0.5)
     assert main(argv) != 0  # the result exists
     assert "exists (use --overwrite)" in capsys.readouterr().err
     assert main([*argv[:-2], "--voxel-blocks", "2", "-o", str(tmp_path / "other.nc")]) != 0
     assert "same, non-zero length" in capsys.readouterr().err
+
+
+def test_cli_report_writes_figures_and_the_error_split(tmp_path, measurements):
+    """``cloudct report RESULT --truth --measurements``: the figures and a summary whose
+    epsilon, delta and epsilon split are those of the result against the truth."""
+    from cloudct.cli import main
+    from cloudct.medium import save_medium
+    from data_synth.measurements import save_measurements
+
+    truth = gradient_medium()
+    result = Retrieval(measurements, initial_guess(), RetrievalConfig(iterations=3, **CONFIG),
+                       truth=truth).run(progress=False)
+    result.to_netcdf(tmp_path / "r.nc")
+    save_medium(truth, tmp_path / "truth.nc")
+    save_measurements(measurements, tmp_path / "meas.nc")
+    out = tmp_path / "report"
+    assert main(["report", str(tmp_path / "r.nc"), "--truth", str(tmp_path / "truth.nc"),
+                 "--measurements", str(tmp_path / "meas.nc"), "-o", str(out)]) == 0
+    for name in ("loss", "epsilon_delta", "slices", "scatter", "images"):
+        assert (out / f"{name}.png").stat().st_size > 1000, name
+    summary = (out / "summary.md").read_text()
+    beta, true_beta = result["cloud_extinction"].values, truth["cloud_extinction"].values
+    eps, delta = epsilon_delta(true_beta, beta)
+    split = epsilon_split(true_beta, beta)
+    assert f"| {eps:.1%} | {delta:+.1%} |" in summary
+    assert f"| {split['outside']:.1%} | {split['inside']:.1%} | {split['cloud_mass']:.1%} |" \
+        in summary

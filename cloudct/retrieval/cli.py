@@ -38,6 +38,7 @@ def config_from_options(args: argparse.Namespace, **settings) -> RetrievalConfig
         time_limit=args.time_limit, recycling=args.recycling, period=args.period,
         stages=tuple(args.stages), stage_photons=tuple(args.stage_photons),
         voxel_blocks=None if args.voxel_blocks is None else tuple(args.voxel_blocks),
+        stage_steps=None if args.stage_steps is None else tuple(args.stage_steps),
         saturation_window=args.saturation_window, step_decay=args.step_decay,
     )
     return RetrievalConfig(**{**options, **settings})
@@ -140,6 +141,8 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) -
                    help="per stage: photons per iteration as a multiple of --photons")
     p.add_argument("--voxel-blocks", type=int, nargs="+", default=None,
                    help="per stage: voxels tied in blocks of this size (default 1)")
+    p.add_argument("--stage-steps", type=float, nargs="+", default=None,
+                   help="per stage: the step as a multiple of --step (default 1)")
     p.add_argument("--saturation-window", type=int, default=RetrievalConfig.saturation_window,
                    help="iterations over which the loss must keep falling to stay in a stage")
     p.add_argument("--step-decay", type=float, default=RetrievalConfig.step_decay,

@@ -45,6 +45,7 @@ class RetrievalConfig:
     stages: tuple[int, ...] = (4, 2, 1)  # pixel block sizes, coarse to fine
     stage_photons: tuple[float, ...] = (0.25, 0.5, 1.0)  # photon fraction per stage
     voxel_blocks: tuple[int, ...] | None = None  # per stage: voxels tied in blocks (None: 1)
+    stage_steps: tuple[float, ...] | None = None  # per stage: step as a multiple of `step`
     saturation_window: int = 10  # iterations over which the loss must keep decreasing
     saturation_tolerance: float = 0.02  # relative decrease below which the loss saturates
     step_decay: float = 1.0  # last stage: step x this whenever the loss saturates (1: never)
@@ -60,12 +61,19 @@ class RetrievalConfig:
         if self.voxel_blocks is None:
             self.voxel_blocks = (1,) * len(self.stages)
         self.voxel_blocks = tuple(int(b) for b in self.voxel_blocks)
+        if self.stage_steps is None:
+            self.stage_steps = (1.0,) * len(self.stages)
+        self.stage_steps = tuple(float(f) for f in self.stage_steps)
         if not self.stages or not (
             len(self.stages) == len(self.stage_photons) == len(self.voxel_blocks)
+            == len(self.stage_steps)
         ):
             raise ValueError(
-                "stages, stage_photons and voxel_blocks must have the same, non-zero length"
+                "stages, stage_photons, voxel_blocks and stage_steps must have the same, "
+                "non-zero length"
             )
+        if min(self.stage_steps) <= 0.0:
+            raise ValueError(f"stage_steps must be > 0, got {self.stage_steps}")
         if not 0.0 < self.step_decay <= 1.0:
             raise ValueError(f"step_decay must be in (0, 1], got {self.step_decay}")
         if min(self.voxel_blocks) < 1:
@@ -204,7 +212,7 @@ class Retrieval:
             loss, gradient, resampled, ess = self._recycled_loss_and_gradient(photons)
         gradient = block_mean(gradient, self.mask, self.config.voxel_blocks[s.stage])
         self.optimizer.state = s.optimizer_state
-        self.optimizer.step = self.config.step * s.step_scale
+        self.optimizer.step = self.config.step * self.config.stage_steps[s.stage] * s.step_scale
         s.extinction = self.optimizer.update(s.extinction, gradient, self.mask)
         s.optimizer_state = self.optimizer.state
         eps, delta = (math.nan, math.nan)

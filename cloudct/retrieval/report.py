@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from cloudct.retrieval.metrics import epsilon_delta
+from cloudct.retrieval.metrics import epsilon_delta, epsilon_split
 
 
 def _plt():
@@ -59,8 +59,14 @@ def write_report(
     if truth is not None:
         true_beta = truth["cloud_extinction"].values
         eps, delta = epsilon_delta(true_beta, beta)
+        split = epsilon_split(true_beta, beta)
         lines += ["## Error against the truth (Eq. 54)", "",
-                  "| epsilon | delta |", "| --- | --- |", f"| {eps:.1%} | {delta:+.1%} |", ""]
+                  "| epsilon | delta |", "| --- | --- |", f"| {eps:.1%} | {delta:+.1%} |", "",
+                  "Where epsilon comes from (each relative to the true cloud's mass):", "",
+                  "| outside the true cloud | inside the cloud | retrieved mass in the cloud |",
+                  "| --- | --- | --- |",
+                  f"| {split['outside']:.1%} | {split['inside']:.1%} | "
+                  f"{split['cloud_mass']:.1%} |", ""]
         if "log_epsilon" in result and np.isfinite(result["log_epsilon"].values).any():
             fig, ax = plt.subplots(figsize=(5, 3.5))
             ax.plot(result["log_seconds"].values, result["log_epsilon"].values, label="epsilon")
