@@ -55,6 +55,7 @@ from cloudct.recycling import (  # noqa: E402
     replay_gradient,
     replay_images,
 )
+from cloudct.retrieval.loss import image_loss  # noqa: E402
 from cloudct.retrieval.optimizers import Adam  # noqa: E402
 
 
@@ -257,7 +258,7 @@ def main() -> None:
             ev = recycler.evaluate(
                 with_cloud(truth, beta), residual=lambda im: im["radiance"].values - target
             )
-            loss = 0.5 * float(np.sum((ev.images["radiance"].values - target) ** 2))
+            loss = image_loss(ev.images["radiance"].values, target)[0]
             trajectory.append({
                 "iteration": t, "loss": loss, "ess_images": ev.info["ess_images"],
                 "ess_gradient": ev.info["ess_gradient"], "resampled": ev.info["resampled"],

@@ -43,6 +43,7 @@ from cloudct.mc.render import render, single_cloud_medium  # noqa: E402
 from cloudct.mc.scene import Scene  # noqa: E402
 from cloudct.retrieval.carving import carve, initial_medium  # noqa: E402
 from cloudct.retrieval.loop import Retrieval, RetrievalConfig, coarse_measurements  # noqa: E402
+from cloudct.retrieval.loss import image_loss  # noqa: E402
 from cloudct.retrieval.metrics import epsilon_delta, epsilon_split  # noqa: E402
 from cloudct.retrieval.optimizers import block_mean  # noqa: E402
 
@@ -160,8 +161,8 @@ def main() -> None:
             for seed in range(args.seeds):
                 images = render(medium, scene, photons=row["photons"], seed=1000 + seed,
                                 progress=False)
-                difference = images["radiance"].values - data["radiance"].values
-                losses.append(0.5 * float(np.sum(difference * difference)))
+                losses.append(image_loss(images["radiance"].values,
+                                         data["radiance"].values)[0])
             row["loss"][name] = mean_and_error(losses)
             print(row["stage"], name, row["loss"][name], flush=True)
     result["stages"] = stages

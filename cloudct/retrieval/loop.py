@@ -25,7 +25,7 @@ from tqdm.auto import tqdm
 from cloudct.mc.cameras import Camera
 from cloudct.mc.scene import Scene
 from cloudct.medium import validate_medium
-from cloudct.retrieval.loss import loss_and_gradient, pixel_weights
+from cloudct.retrieval.loss import image_loss, loss_and_gradient, pixel_weights
 from cloudct.retrieval.metrics import epsilon_delta
 from cloudct.retrieval.optimizers import block_mean, make_optimizer, project
 
@@ -255,12 +255,12 @@ class Retrieval:
                 )
             self._recycler_stage = s.stage
         w = pixel_weights(data)
-        measured = np.nan_to_num(data["radiance"].values)
+        measured = data["radiance"].values
         ev = self._recycler.evaluate(
-            self.medium(), residual=lambda images: w * (images["radiance"].values - measured)
+            self.medium(),
+            residual=lambda images: image_loss(images["radiance"].values, measured, w)[1],
         )
-        difference = ev.images["radiance"].values - measured
-        loss = 0.5 * float(np.sum(w * difference * difference))
+        loss = image_loss(ev.images["radiance"].values, measured, w)[0]
         return loss, ev.gradient, float(ev.info["resampled"]), float(ev.info["ess_fraction"])
 
     def _advance_stage_if_saturated(self) -> None:

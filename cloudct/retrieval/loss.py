@@ -65,6 +65,17 @@ def pixel_weights(
     return w
 
 
+def image_loss(
+    radiance: np.ndarray, measured: np.ndarray, weights: np.ndarray | None = None
+) -> tuple[float, np.ndarray]:
+    """Eq. (41) for images against measured ones: ``(L, residual)`` with the residual
+    r_d = w_d (I_d - I_d^measured) of Eq. (48) (weights default 1). NaN measured pixels
+    count as 0: give them weight 0 (:func:`pixel_weights` does)."""
+    difference = radiance - np.nan_to_num(measured)
+    residual = difference if weights is None else weights * difference
+    return 0.5 * float(np.sum(residual * difference)), residual
+
+
 def loss_and_gradient(
     medium: xr.Dataset,
     measurements: xr.Dataset,
@@ -92,14 +103,11 @@ def loss_and_gradient(
         raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
     scene = Scene.from_dataset(measurements)
     w = pixel_weights(measurements, weights, mask)
-    measured = np.nan_to_num(measurements["radiance"].values)
     images = render(
         medium, scene, photons=photons, seed=2 * seed, batches=batches, progress=progress,
         backend=backend, client=client,
     )
-    difference = images["radiance"].values - measured
-    residual = w * difference
-    loss = 0.5 * float(np.sum(residual * difference))
+    loss, residual = image_loss(images["radiance"].values, measurements["radiance"].values, w)
     mean, std_error, _ = score_function_gradient(
         medium, scene, residual, photons=gradient_photons or photons, seed=2 * seed + 1,
         batches=batches, progress=progress, backend=backend, client=client,
