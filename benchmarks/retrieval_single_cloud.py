@@ -14,7 +14,7 @@ Usage::
 
     python benchmarks/retrieval_single_cloud.py --minutes 60 [--recycling none|fixed|adaptive]
         [--photons 100000] [--step 2.0] [--voxel-blocks 4 2 1] [--output FILE.json]
-        [--medium-output FILE.nc]
+        [--medium-output FILE.nc] [--start FILE.nc]
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import xarray as xr
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
@@ -85,6 +86,9 @@ def main() -> None:
     parser.add_argument("--output", default=str(HERE / "results" / "retrieval_single_cloud.json"))
     parser.add_argument("--medium-output", default=None,
                         help="also write the retrieved medium with its log (netCDF)")
+    parser.add_argument("--start", default=None,
+                        help="start from this medium netCDF (e.g. a --medium-output; its "
+                             "cloud_mask is the hull) instead of the carved hull")
     args = parser.parse_args()
     if args.time_limit is not None:
         parser.error("the run's length is --minutes")
@@ -93,8 +97,13 @@ def main() -> None:
     t0 = time.perf_counter()
     measurements = measurements_for(truth, args.measurement_photons, Path(args.work))
     synth_s = time.perf_counter() - t0
-    carved = carve(measurements, truth)
-    initial = initial_medium(carved, truth)
+    if args.start is None:
+        initial, mask = initial_medium(carve(measurements, truth), truth), None
+    else:
+        start = xr.load_dataset(args.start)
+        initial = truth.copy(deep=True)
+        initial["cloud_extinction"].values = start["cloud_extinction"].values.copy()
+        mask = start["cloud_mask"].values.astype(bool)
     config = config_from_options(
         args, optimizer=args.optimizer, seed=args.seed, time_limit=60.0 * args.minutes,
         checkpoint_every=10**9,
@@ -103,9 +112,10 @@ def main() -> None:
         **run_header(),
         "measurement_photons": args.measurement_photons,
         "measurement_seconds": synth_s,
+        "start": args.start or "carved hull",
         "config": {k: v for k, v in vars(config).items()},
     }
-    run = Retrieval(measurements, initial, config, truth=truth)
+    run = Retrieval(measurements, initial, config, mask=mask, truth=truth)
     eps0 = run.state.extinction
     from cloudct.retrieval.metrics import epsilon_delta
 

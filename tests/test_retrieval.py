@@ -10,7 +10,13 @@ from test_score_gradient import gradient_medium, gradient_scene
 from cloudct.mc.render import render
 from cloudct.retrieval.loop import Retrieval, RetrievalConfig, coarse_measurements
 from cloudct.retrieval.metrics import epsilon_delta, epsilon_split
-from cloudct.retrieval.optimizers import Adam, MomentumSGD, block_mean, project
+from cloudct.retrieval.optimizers import (
+    Adam,
+    MomentumSGD,
+    block_mean,
+    project,
+    smoothed_gradient,
+)
 
 
 def test_adam_follows_its_formula():
@@ -58,6 +64,38 @@ def test_block_mean_ties_the_masked_voxels_of_each_block():
     np.testing.assert_allclose(tied[mask].sum(), field[mask].sum())
     with pytest.raises(ValueError, match="voxel_blocks"):
         RetrievalConfig(voxel_blocks=(2, 1))
+
+
+def test_smoothed_gradient_is_a_symmetric_positive_preconditioner():
+    rng = np.random.default_rng(4)
+    shape = (9, 8, 7)
+    mask = rng.uniform(size=shape) < 0.6
+    u, v = rng.normal(size=shape), rng.normal(size=shape)
+    assert np.array_equal(smoothed_gradient(u, mask, 0.0), np.where(mask, u, 0.0))
+    su, sv = smoothed_gradient(u, mask, 1.5), smoothed_gradient(v, mask, 1.5)
+    assert np.all(su[~mask] == 0.0)
+    # u . S v = v . S u, and g . S g > 0: a descent direction with the same stationary points
+    assert np.vdot(u, sv) == pytest.approx(np.vdot(v, su), rel=1e-12)
+    for g in (u, v, rng.normal(size=shape)):
+        assert np.vdot(g, smoothed_gradient(g, mask, 1.5)) > 0.0
+    # a single voxel's gradient spreads over its neighbours as the Gaussian's weights
+    one = np.zeros(shape)
+    one[4, 4, 3] = 1.0
+    spread = smoothed_gradient(one, np.ones(shape, bool), 1.0)
+    g1 = np.exp(-0.5) / np.exp(0.0)  # a neighbour one voxel away, relative to the centre
+    assert spread[5, 4, 3] / spread[4, 4, 3] == pytest.approx(g1, rel=1e-6)
+    assert spread[5, 5, 3] / spread[4, 4, 3] == pytest.approx(g1**2, rel=1e-6)
+    # the noise of independent voxels is averaged down, a smooth field is kept
+    noise = rng.normal(size=(40, 40, 40))
+    full = np.ones(noise.shape, bool)
+    assert smoothed_gradient(noise, full, 2.0)[8:-8, 8:-8, 8:-8].std() < 0.1
+    ramp = np.broadcast_to(np.linspace(0.0, 1.0, 40), noise.shape)
+    np.testing.assert_allclose(smoothed_gradient(ramp, full, 2.0)[8:-8, 8:-8, 8:-8],
+                               ramp[8:-8, 8:-8, 8:-8], atol=1e-9)
+    with pytest.raises(ValueError, match="gradient_smoothing"):
+        RetrievalConfig(stages=(2, 1), stage_photons=(1.0, 1.0), gradient_smoothing=(1.0,))
+    with pytest.raises(ValueError, match="gradient_smoothing must be >= 0"):
+        RetrievalConfig(stages=(1,), stage_photons=(1.0,), gradient_smoothing=(-1.0,))
 
 
 def test_epsilon_delta():
@@ -144,7 +182,7 @@ def test_each_stage_steps_with_its_own_step(measurements):
     config = RetrievalConfig(iterations=0, photons=1_000, step=2.0, stages=(2, 1),
                              stage_photons=(1.0, 1.0), stage_steps=(1.0, 0.25), step_decay=0.5)
     run = Retrieval(measurements, initial_guess(), config)
-    run.step()
+    assert run.step()["photons"] == 2_000  # images and gradient, 1,000 each
     assert run.optimizer.step == 2.0
     run.state.stage, run.state.step_scale = 1, 0.5  # the last stage, its step decayed once
     run.step()
@@ -153,6 +191,30 @@ def test_each_stage_steps_with_its_own_step(measurements):
         RetrievalConfig(stages=(2, 1), stage_photons=(1.0, 1.0), stage_steps=(1.0,))
     with pytest.raises(ValueError, match="stage_steps must be > 0"):
         RetrievalConfig(stages=(1,), stage_photons=(1.0,), stage_steps=(0.0,))
+
+
+def test_residual_images_take_their_own_photon_count(measurements, monkeypatch):
+    import cloudct.retrieval.loop as loop
+
+    seen = {}
+    real = loop.loss_and_gradient
+
+    def spy(*args, **kwargs):
+        seen.update(photons=kwargs["photons"], gradient_photons=kwargs["gradient_photons"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(loop, "loss_and_gradient", spy)
+    config = RetrievalConfig(iterations=0, photons=1_000, image_photons=(3.0, 1.0),
+                             stages=(2, 1), stage_photons=(0.5, 1.0))
+    run = Retrieval(measurements, initial_guess(), config)
+    assert run.step()["photons"] == 1_500 + 500
+    assert seen == {"photons": 1_500, "gradient_photons": 500}
+    run.state.stage = 1
+    assert run.step()["photons"] == 1_000 + 1_000
+    with pytest.raises(ValueError, match="image_photons must be > 0"):
+        RetrievalConfig(stages=(1,), stage_photons=(1.0,), image_photons=(0.0,))
+    with pytest.raises(ValueError, match="image_photons must have the same"):
+        RetrievalConfig(stages=(2, 1), stage_photons=(1.0, 1.0), image_photons=(1.0,))
 
 
 def test_checkpoint_from_another_run_is_refused(tmp_path, measurements):
@@ -211,11 +273,12 @@ def test_cli_retrieve_passes_the_coarse_to_fine_options(tmp_path, measurements, 
             "--iterations", "2", "--photons", "2000", "--stages", "2", "1",
             "--stage-photons", "0.5", "2", "--voxel-blocks", "2", "1",
             "--saturation-window", "4", "--step-decay", "0.5", "--stage-steps", "1", "0.25",
-            "-o", str(out)]
+            "--gradient-smoothing", "1.5", "0", "--image-photons", "1", "3", "-o", str(out)]
     assert main(argv) == 0
     config = json.loads(xr.load_dataset(out).attrs["config"])
     assert config["stages"] == [2, 1] and config["stage_photons"] == [0.5, 2.0]
     assert config["voxel_blocks"] == [2, 1] and config["stage_steps"] == [1.0, 0.25]
+    assert config["gradient_smoothing"] == [1.5, 0.0] and config["image_photons"] == [1.0, 3.0]
     assert (config["saturation_window"], config["step_decay"]) == (4, 0.5)
     assert main(argv) != 0  # the result exists
     assert "exists (use --overwrite)" in capsys.readouterr().err

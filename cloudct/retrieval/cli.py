@@ -39,6 +39,10 @@ def config_from_options(args: argparse.Namespace, **settings) -> RetrievalConfig
         stages=tuple(args.stages), stage_photons=tuple(args.stage_photons),
         voxel_blocks=None if args.voxel_blocks is None else tuple(args.voxel_blocks),
         stage_steps=None if args.stage_steps is None else tuple(args.stage_steps),
+        gradient_smoothing=(
+            None if args.gradient_smoothing is None else tuple(args.gradient_smoothing)
+        ),
+        image_photons=None if args.image_photons is None else tuple(args.image_photons),
         saturation_window=args.saturation_window, step_decay=args.step_decay,
     )
     return RetrievalConfig(**{**options, **settings})
@@ -143,6 +147,12 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) -
                    help="per stage: voxels tied in blocks of this size (default 1)")
     p.add_argument("--stage-steps", type=float, nargs="+", default=None,
                    help="per stage: the step as a multiple of --step (default 1)")
+    p.add_argument("--gradient-smoothing", type=float, nargs="+", default=None,
+                   help="per stage: Gaussian sigma [voxels] the gradient is smoothed with "
+                        "inside the hull (default 0: none)")
+    p.add_argument("--image-photons", type=float, nargs="+", default=None,
+                   help="per stage: photons of the residual's images as a multiple of the "
+                        "gradient's (default 1)")
     p.add_argument("--saturation-window", type=int, default=RetrievalConfig.saturation_window,
                    help="iterations over which the loss must keep falling to stay in a stage")
     p.add_argument("--step-decay", type=float, default=RetrievalConfig.step_decay,

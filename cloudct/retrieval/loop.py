@@ -27,9 +27,19 @@ from cloudct.mc.scene import Scene
 from cloudct.medium import validate_medium
 from cloudct.retrieval.loss import image_loss, loss_and_gradient, pixel_weights
 from cloudct.retrieval.metrics import epsilon_delta
-from cloudct.retrieval.optimizers import block_mean, make_optimizer, project
+from cloudct.retrieval.optimizers import (
+    block_mean,
+    make_optimizer,
+    project,
+    smoothed_gradient,
+)
 
 RECYCLING = ("none", "fixed", "adaptive")
+# per-stage settings that may be given as None: (field, type, value at every stage)
+PER_STAGE_DEFAULTS = (
+    ("voxel_blocks", int, 1), ("stage_steps", float, 1.0), ("gradient_smoothing", float, 0.0),
+    ("image_photons", float, 1.0),
+)
 LOG_FIELDS = ("loss", "epsilon", "delta", "seconds", "photons", "stage", "resampled", "ess")
 
 
@@ -46,6 +56,9 @@ class RetrievalConfig:
     stage_photons: tuple[float, ...] = (0.25, 0.5, 1.0)  # photon fraction per stage
     voxel_blocks: tuple[int, ...] | None = None  # per stage: voxels tied in blocks (None: 1)
     stage_steps: tuple[float, ...] | None = None  # per stage: step as a multiple of `step`
+    gradient_smoothing: tuple[float, ...] | None = None  # per stage: Gaussian sigma, voxels
+    image_photons: tuple[float, ...] | None = None  # per stage: residual images' photons as a
+    # multiple of the gradient's (None: 1)
     saturation_window: int = 10  # iterations over which the loss must keep decreasing
     saturation_tolerance: float = 0.02  # relative decrease below which the loss saturates
     step_decay: float = 1.0  # last stage: step x this whenever the loss saturates (1: never)
@@ -58,20 +71,19 @@ class RetrievalConfig:
     def __post_init__(self) -> None:
         self.stages = tuple(int(s) for s in self.stages)
         self.stage_photons = tuple(float(p) for p in self.stage_photons)
-        if self.voxel_blocks is None:
-            self.voxel_blocks = (1,) * len(self.stages)
-        self.voxel_blocks = tuple(int(b) for b in self.voxel_blocks)
-        if self.stage_steps is None:
-            self.stage_steps = (1.0,) * len(self.stages)
-        self.stage_steps = tuple(float(f) for f in self.stage_steps)
-        if not self.stages or not (
-            len(self.stages) == len(self.stage_photons) == len(self.voxel_blocks)
-            == len(self.stage_steps)
-        ):
+        for name, kind, default in PER_STAGE_DEFAULTS:  # None: the default at every stage
+            values = getattr(self, name)
+            values = (default,) * len(self.stages) if values is None else values
+            setattr(self, name, tuple(kind(v) for v in values))
+        per_stage = (self.stage_photons, self.voxel_blocks, self.stage_steps,
+                     self.gradient_smoothing, self.image_photons)
+        if not self.stages or any(len(v) != len(self.stages) for v in per_stage):
             raise ValueError(
-                "stages, stage_photons, voxel_blocks and stage_steps must have the same, "
-                "non-zero length"
+                "stages, stage_photons, voxel_blocks, stage_steps, gradient_smoothing and "
+                "image_photons must have the same, non-zero length"
             )
+        if min(self.gradient_smoothing) < 0.0:
+            raise ValueError(f"gradient_smoothing must be >= 0, got {self.gradient_smoothing}")
         if min(self.stage_steps) <= 0.0:
             raise ValueError(f"stage_steps must be > 0, got {self.stage_steps}")
         if not 0.0 < self.step_decay <= 1.0:
@@ -80,6 +92,8 @@ class RetrievalConfig:
             raise ValueError(f"voxel_blocks must be >= 1, got {self.voxel_blocks}")
         if self.iterations < 0 or self.photons < 1 or self.checkpoint_every < 1:
             raise ValueError("iterations >= 0, photons >= 1 and checkpoint_every >= 1 needed")
+        if min(self.image_photons) <= 0.0:
+            raise ValueError(f"image_photons must be > 0, got {self.image_photons}")
         if self.recycling not in RECYCLING:
             raise ValueError(f"recycling must be one of {RECYCLING}, got {self.recycling!r}")
 
@@ -193,24 +207,32 @@ class Retrieval:
         ).copy()
         return out
 
-    def _stage_photons(self) -> int:
-        return max(int(self.config.photons * self.config.stage_photons[self.state.stage]), 1)
+    def _stage_photons(self) -> tuple[int, int]:
+        """Photons of this stage's iteration: (images of the residual, gradient)."""
+        gradient = max(int(self.config.photons * self.config.stage_photons[self.state.stage]), 1)
+        images = gradient * self.config.image_photons[self.state.stage]
+        return max(int(round(images)), 1), gradient
 
     def step(self) -> dict[str, float]:
         """One iteration: loss and gradient, optimiser step, log row."""
         s = self.state
         start = time.perf_counter()
-        photons = self._stage_photons()
+        photons, gradient_photons = self._stage_photons()
         if self.config.recycling == "none":
             result = loss_and_gradient(
                 self.medium(), self._stage_data[s.stage], photons=photons,
-                seed=self.config.seed * 1_000_003 + s.iteration, backend=self.backend,
-                client=self.client,
+                gradient_photons=gradient_photons, seed=self.config.seed * 1_000_003 + s.iteration,
+                backend=self.backend, client=self.client,
             )
             loss, gradient, resampled, ess = result.loss, result.gradient, 1.0, math.nan
         else:
-            loss, gradient, resampled, ess = self._recycled_loss_and_gradient(photons)
-        gradient = block_mean(gradient, self.mask, self.config.voxel_blocks[s.stage])
+            loss, gradient, resampled, ess = self._recycled_loss_and_gradient(
+                photons, gradient_photons
+            )
+        gradient = smoothed_gradient(
+            block_mean(gradient, self.mask, self.config.voxel_blocks[s.stage]), self.mask,
+            self.config.gradient_smoothing[s.stage],
+        )
         self.optimizer.state = s.optimizer_state
         self.optimizer.step = self.config.step * self.config.stage_steps[s.stage] * s.step_scale
         s.extinction = self.optimizer.update(s.extinction, gradient, self.mask)
@@ -222,8 +244,8 @@ class Retrieval:
         s.elapsed += seconds
         row = {
             "loss": loss, "epsilon": eps, "delta": delta, "seconds": s.elapsed,
-            "photons": 2 * photons, "stage": s.stage, "resampled": resampled, "ess": ess,
-            "iteration_seconds": seconds,
+            "photons": photons + gradient_photons, "stage": s.stage, "resampled": resampled,
+            "ess": ess, "iteration_seconds": seconds,
         }
         for key in LOG_FIELDS:
             s.log[key].append(float(row[key]))
@@ -231,14 +253,17 @@ class Retrieval:
         self._advance_stage_if_saturated()
         return row
 
-    def _recycled_loss_and_gradient(self, photons: int) -> tuple[float, np.ndarray, float, float]:
+    def _recycled_loss_and_gradient(
+        self, photons: int, gradient_photons: int
+    ) -> tuple[float, np.ndarray, float, float]:
         """Loss and gradient from the stage's recycler (seed paper Alg. 2): stored paths
         re-evaluated under the current medium, resampled when the policy says so."""
         s = self.state
         data = self._stage_data[s.stage]
         if self._recycler is None or self._recycler_stage != s.stage:
             settings = dict(
-                photons=photons, policy=self.config.policy(), variable=self.mask,
+                photons=photons, gradient_photons=gradient_photons,
+                policy=self.config.policy(), variable=self.mask,
                 seed=self.config.seed * 1_000_003 + 7919 * (s.stage + 1),
             )
             if self.client is None:

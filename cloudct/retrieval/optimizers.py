@@ -8,6 +8,7 @@ can checkpoint and resume them exactly.
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
 
 
 def project(beta: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
@@ -38,6 +39,23 @@ def block_mean(field: np.ndarray, mask: np.ndarray, block: int) -> np.ndarray:
     out = np.zeros(shape)
     out[mask] = sums[flat] / counts[flat]
     return out
+
+
+def smoothed_gradient(gradient: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
+    """``gradient`` restricted to the mask, convolved with a Gaussian of standard deviation
+    ``sigma`` voxels and restricted to the mask again (``sigma`` = 0: only the restriction).
+
+    This is M G M g with M the mask and G the Gaussian convolution: a symmetric
+    preconditioner whose eigenvalues are positive (for sigma up to 1.5; beyond, the
+    kernel's truncation at 4 sigma lets the highest spatial frequencies reach -2e-5 of the
+    largest), so the smoothed gradient is a descent direction, g . M G M g > 0, and a
+    stationary point of the loss stays one. Unlike voxel blocks it keeps the minimiser; it
+    damps the voxel-scale components of a step, where a Monte Carlo gradient is mostly noise.
+    """
+    masked = np.where(mask, gradient, 0.0)
+    if sigma == 0.0:
+        return masked
+    return np.where(mask, gaussian_filter(masked, sigma, mode="constant", truncate=4.0), 0.0)
 
 
 class Adam:
