@@ -60,18 +60,18 @@ def quality(truth: np.ndarray, beta: np.ndarray) -> dict:
 
 def run_stage_losses(run: dict, last: int) -> list[dict]:
     """Per stage of a retrieval run: its settings and the loss of its last iterations."""
-    config, log = run["config"], run["log"]
+    config, log = RetrievalConfig(**run["config"]), run["log"]
     stage, loss = np.asarray(log["stage"]), np.asarray(log["loss"])
     rows = []
-    for i, block in enumerate(config["stages"]):
+    for i, block in enumerate(config.stages):
         mine = np.nonzero(stage == i)[0]
         if mine.size == 0:
             continue
         tail = mine[-last:]
         rows.append({
             "stage": i, "pixel_block": int(block),
-            "photons": int(config["photons"] * config["stage_photons"][i]),
-            "voxel_block": int(config["voxel_blocks"][i]),
+            "photons": config.photons_at(i)[0],  # the images' photons: the loss's noise
+            "voxel_block": config.voxel_blocks[i],
             "run_loss": mean_and_error(loss[tail].tolist()),
             "run_quality": {"epsilon": float(log["epsilon"][tail[-1]]),
                             "delta": float(log["delta"][tail[-1]])},

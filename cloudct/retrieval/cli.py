@@ -36,13 +36,9 @@ def config_from_options(args: argparse.Namespace, **settings) -> RetrievalConfig
     options = dict(
         iterations=args.iterations, photons=args.photons, step=args.step,
         time_limit=args.time_limit, recycling=args.recycling, period=args.period,
-        stages=tuple(args.stages), stage_photons=tuple(args.stage_photons),
-        voxel_blocks=None if args.voxel_blocks is None else tuple(args.voxel_blocks),
-        stage_steps=None if args.stage_steps is None else tuple(args.stage_steps),
-        gradient_smoothing=(
-            None if args.gradient_smoothing is None else tuple(args.gradient_smoothing)
-        ),
-        image_photons=None if args.image_photons is None else tuple(args.image_photons),
+        stages=args.stages, stage_photons=args.stage_photons, voxel_blocks=args.voxel_blocks,
+        stage_steps=args.stage_steps, gradient_smoothing=args.gradient_smoothing,
+        image_photons=args.image_photons,
         saturation_window=args.saturation_window, step_decay=args.step_decay,
     )
     return RetrievalConfig(**{**options, **settings})

@@ -97,6 +97,11 @@ class RetrievalConfig:
         if self.recycling not in RECYCLING:
             raise ValueError(f"recycling must be one of {RECYCLING}, got {self.recycling!r}")
 
+    def photons_at(self, stage: int) -> tuple[int, int]:
+        """Photons of an iteration at ``stage``: (images of the residual, gradient)."""
+        gradient = max(int(self.photons * self.stage_photons[stage]), 1)
+        return max(int(round(gradient * self.image_photons[stage])), 1), gradient
+
     def policy(self):
         """The recycling policy of these settings (None without recycling)."""
         from cloudct.recycling.policy import AdaptiveESS, FixedPeriod
@@ -207,17 +212,11 @@ class Retrieval:
         ).copy()
         return out
 
-    def _stage_photons(self) -> tuple[int, int]:
-        """Photons of this stage's iteration: (images of the residual, gradient)."""
-        gradient = max(int(self.config.photons * self.config.stage_photons[self.state.stage]), 1)
-        images = gradient * self.config.image_photons[self.state.stage]
-        return max(int(round(images)), 1), gradient
-
     def step(self) -> dict[str, float]:
         """One iteration: loss and gradient, optimiser step, log row."""
         s = self.state
         start = time.perf_counter()
-        photons, gradient_photons = self._stage_photons()
+        photons, gradient_photons = self.config.photons_at(s.stage)
         if self.config.recycling == "none":
             result = loss_and_gradient(
                 self.medium(), self._stage_data[s.stage], photons=photons,
