@@ -133,8 +133,12 @@ def main() -> None:
     truth_medium = single_cloud_medium()
     truth = truth_medium["cloud_extinction"].values
     measurements = measurements_for(truth_medium, args.measurement_photons, Path(args.work))
-    start = initial_medium(carve(measurements, truth_medium), truth_medium)
-    hull = start["cloud_extinction"].values > 0
+    run = json.loads(Path(args.run).read_text())
+    # the run's carved start; runs before the excess profile record "carved hull" alone
+    profile = "excess" if "excess profile" in run.get("start", "") else "constant"
+    carved = carve(measurements, truth_medium, profile=profile)
+    start = initial_medium(carved, truth_medium)
+    hull = carved["hull"].values > 0
     inside = np.where(hull, truth, 0.0)
     media = {
         "truth in hull": inside,
@@ -147,7 +151,6 @@ def main() -> None:
     result = {**run_header(), "seeds": args.seeds, "last": args.last,
               "media": {name: quality(truth, beta) for name, beta in media.items()}}
 
-    run = json.loads(Path(args.run).read_text())
     result["run"] = {"file": args.run, "config": run["config"]}
     stages = run_stage_losses(run, args.last)
     for row in stages:
