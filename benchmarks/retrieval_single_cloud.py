@@ -102,16 +102,16 @@ def main() -> None:
     t0 = time.perf_counter()
     measurements = measurements_for(truth, args.measurement_photons, Path(args.work))
     synth_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
+    carving_s = None
     if args.start is None:
+        t0 = time.perf_counter()
         initial = initial_medium(carve(measurements, truth, profile=args.profile), truth)
-        mask = None
+        mask, carving_s = None, time.perf_counter() - t0
     else:
         start = xr.load_dataset(args.start)
         initial = truth.copy(deep=True)
         initial["cloud_extinction"].values = start["cloud_extinction"].values.copy()
         mask = start["cloud_mask"].values.astype(bool)
-    carving_s = time.perf_counter() - t0
     config = config_from_options(
         args, optimizer=args.optimizer, seed=args.seed, time_limit=60.0 * args.minutes,
         checkpoint_every=10**9,

@@ -428,10 +428,11 @@ def _ranges(box: np.ndarray) -> str:
 
 def _layer_pixels(
     cams: CameraArrays, edges: tuple[np.ndarray, np.ndarray, np.ndarray], nsub: int
-) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
-    """``(kz, view, row, col)`` for every z layer and view: the pixels seen by the centres of
-    the ``nsub``^3 sub-cells of the layer's voxels, int64[nx, ny, nsub, nsub, nsub] (-1
-    outside the image). One z layer at a time, to bound the memory."""
+) -> Iterator[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
+    """``(kz, view, inside, row, col)`` for every z layer and view: the pixels seen by the
+    centres of the ``nsub``^3 sub-cells of the layer's voxels, arrays [nx, ny, nsub, nsub,
+    nsub] (``inside``: the point is in the image; row and col are 0 where it is not, so
+    that they index safely). One z layer at a time, to bound the memory."""
     fractions = (np.arange(nsub) + 0.5) / nsub
     sx, sy, sz = (e[:-1, None] + fractions * np.diff(e)[:, None] for e in edges)
     for kz in range(len(sz)):
@@ -439,7 +440,9 @@ def _layer_pixels(
         px, py, pz = sx[:, None, :, None, None], sy[None, :, None, :, None], sz[kz]
         points = np.stack(np.broadcast_arrays(px, py, pz[None, None, None, None, :]), axis=-1)
         for v in range(cams.position.shape[0]):
-            yield (kz, v, *project_points(cams, v, points))
+            row, col = project_points(cams, v, points)
+            inside = row >= 0
+            yield kz, v, inside, np.where(inside, row, 0), np.where(inside, col, 0)
 
 
 def _votes(
@@ -451,10 +454,8 @@ def _votes(
 ) -> np.ndarray:
     """Votes per voxel, int16[nx, ny, nz] (the rule is in the module docstring)."""
     votes = np.zeros(tuple(len(e) - 1 for e in edges), dtype=np.int16)
-    for kz, v, row, col in _layer_pixels(cams, edges, nsub):
-        outside = row < 0
-        r, c = np.where(outside, 0, row), np.where(outside, 0, col)
-        vote = outside | cloudy[v, r, c] | ~observed[v, r, c]
+    for kz, v, inside, row, col in _layer_pixels(cams, edges, nsub):
+        vote = ~inside | cloudy[v, row, col] | ~observed[v, row, col]
         votes[:, :, kz] += vote.any(axis=(2, 3, 4))
     return votes
 
@@ -469,10 +470,9 @@ def _faintest_excess(
     excess radiance averaged over the (non-NaN) pixels of the voxel's sub-cell centres;
     +inf where no view sees the voxel."""
     faintest = np.full(tuple(len(e) - 1 for e in edges), np.inf)
-    for kz, v, row, col in _layer_pixels(cams, edges, nsub):
-        seen = row >= 0
-        pixel = excess[v, np.where(seen, row, 0), np.where(seen, col, 0)]
-        seen &= np.isfinite(pixel)
+    for kz, v, inside, row, col in _layer_pixels(cams, edges, nsub):
+        pixel = excess[v, row, col]
+        seen = inside & np.isfinite(pixel)
         count = seen.sum(axis=(2, 3, 4))
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = np.where(seen, pixel, 0.0).sum(axis=(2, 3, 4)) / count

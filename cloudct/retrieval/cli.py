@@ -140,15 +140,18 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) -
                    default=list(RetrievalConfig.stage_photons),
                    help="per stage: photons per iteration as a multiple of --photons")
     p.add_argument("--voxel-blocks", type=int, nargs="+", default=None,
-                   help="per stage: voxels tied in blocks of this size (default 1)")
+                   help="per stage: voxels tied in blocks of this size (default %(default)s; "
+                        "None: 1 at every stage)")
     p.add_argument("--stage-steps", type=float, nargs="+", default=None,
-                   help="per stage: the step as a multiple of --step (default 1)")
+                   help="per stage: the step as a multiple of --step (default %(default)s; None: 1 "
+                        "at every stage)")
     p.add_argument("--gradient-smoothing", type=float, nargs="+", default=None,
                    help="per stage: Gaussian sigma [voxels] the gradient is smoothed with "
-                        "inside the hull (default 0: none)")
+                        "inside the hull (default %(default)s; None: 0, no smoothing, "
+                        "at every stage)")
     p.add_argument("--image-photons", type=float, nargs="+", default=None,
                    help="per stage: photons of the residual's images as a multiple of the "
-                        "gradient's (default 1)")
+                        "gradient's (default %(default)s; None: 1 at every stage)")
     p.add_argument("--saturation-window", type=int, default=RetrievalConfig.saturation_window,
                    help="iterations over which the loss must keep falling to stay in a stage")
     p.add_argument("--step-decay", type=float, default=RetrievalConfig.step_decay,
