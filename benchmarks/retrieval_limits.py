@@ -177,7 +177,8 @@ def main() -> None:
         pixel_block, voxel_block, photons, step = spec.split(":")
         config = RetrievalConfig(
             iterations=10**9, photons=int(photons), step=float(step), stages=(int(pixel_block),),
-            stage_photons=(1.0,), voxel_blocks=(int(voxel_block),), checkpoint_every=10**9,
+            stage_photons=(1.0,), voxel_blocks=(int(voxel_block),), gradient_smoothing=(0.0,),
+            image_photons=(1.0,), step_decay=1.0, checkpoint_every=10**9,
             time_limit=60.0 * args.drift_minutes,
         )
         drift = Retrieval(measurements, at_truth, config, mask=hull, truth=truth_medium)

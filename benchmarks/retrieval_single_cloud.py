@@ -82,7 +82,6 @@ def main() -> None:
     parser.add_argument("--marks", type=float, nargs="+", default=[15.0, 60.0])
     parser.add_argument("--measurement-photons", type=int, default=20_000_000)
     add_run_options(parser, iterations=1_000_000, photons=100_000)
-    parser.add_argument("--optimizer", default="adam")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--work", default=str(HERE / "work"))
     parser.add_argument("--output", default=str(HERE / "results" / "retrieval_single_cloud.json"))
@@ -113,7 +112,7 @@ def main() -> None:
         initial["cloud_extinction"].values = start["cloud_extinction"].values.copy()
         mask = start["cloud_mask"].values.astype(bool)
     config = config_from_options(
-        args, optimizer=args.optimizer, seed=args.seed, time_limit=60.0 * args.minutes,
+        args, seed=args.seed, time_limit=60.0 * args.minutes,
         checkpoint_every=10**9,
     )
     result = {

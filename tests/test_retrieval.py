@@ -66,6 +66,24 @@ def test_block_mean_ties_the_masked_voxels_of_each_block():
         RetrievalConfig(voxel_blocks=(2, 1))
 
 
+def test_defaults_and_per_stage_settings_left_at_none():
+    """The defaults are the best measured single-cloud settings (docs/benchmarks.md), and a
+    per-stage setting left at None takes its default at every stage (L-BFGS-B's own: no
+    smoothing, two equal path stores)."""
+    default = RetrievalConfig()
+    assert (default.optimizer, default.step, default.stages, default.step_decay) == (
+        "adam", 1.0, (2,), 0.5)
+    assert (default.stage_photons, default.gradient_smoothing, default.image_photons) == (
+        (1.0,), (1.0,), (4.0,))
+    three = RetrievalConfig(stages=(4, 2, 1))
+    assert three.stage_photons == three.stage_steps == (1.0, 1.0, 1.0)
+    assert three.gradient_smoothing == (1.0,) * 3 and three.image_photons == (4.0,) * 3
+    assert three.voxel_blocks == (1, 1, 1)
+    quasi_newton = RetrievalConfig(optimizer="lbfgsb", stages=(2, 1))
+    assert quasi_newton.gradient_smoothing == (0.0, 0.0)
+    assert quasi_newton.image_photons == (1.0, 1.0)
+
+
 def test_smoothed_gradient_is_a_symmetric_positive_preconditioner():
     rng = np.random.default_rng(4)
     shape = (9, 8, 7)
@@ -144,10 +162,14 @@ CONFIG = dict(photons=40_000, step=1.0, stages=(2, 1), stage_photons=(0.5, 1.0),
               saturation_window=3, checkpoint_every=3)
 
 
-def test_checkpoint_resume_continues_exactly(tmp_path, measurements):
-    straight = Retrieval(measurements, initial_guess(), RetrievalConfig(iterations=6, **CONFIG))
+LBFGSB = dict(CONFIG, optimizer="lbfgsb", trust_region=0.3)
+
+
+@pytest.mark.parametrize("settings", [CONFIG, dict(LBFGSB, period=3)], ids=["adam", "lbfgsb"])
+def test_checkpoint_resume_continues_exactly(tmp_path, measurements, settings):
+    straight = Retrieval(measurements, initial_guess(), RetrievalConfig(iterations=6, **settings))
     straight.run(progress=False)
-    first = Retrieval(measurements, initial_guess(), RetrievalConfig(iterations=3, **CONFIG))
+    first = Retrieval(measurements, initial_guess(), RetrievalConfig(iterations=3, **settings))
     first.run(checkpoint=tmp_path / "ck.nc", progress=False)
     resumed = Retrieval.resume(tmp_path / "ck.nc", measurements, initial_guess(), iterations=6)
     resumed.run(progress=False)
@@ -180,7 +202,8 @@ def test_step_decays_when_the_loss_saturates_at_the_last_stage(tmp_path, measure
 
 def test_each_stage_steps_with_its_own_step(measurements):
     config = RetrievalConfig(iterations=0, photons=1_000, step=2.0, stages=(2, 1),
-                             stage_photons=(1.0, 1.0), stage_steps=(1.0, 0.25), step_decay=0.5)
+                             stage_photons=(1.0, 1.0), stage_steps=(1.0, 0.25), step_decay=0.5,
+                             image_photons=(1.0, 1.0))
     run = Retrieval(measurements, initial_guess(), config)
     assert run.step()["photons"] == 2_000  # images and gradient, 1,000 each
     assert run.optimizer.step == 2.0
@@ -215,6 +238,38 @@ def test_residual_images_take_their_own_photon_count(measurements, monkeypatch):
         RetrievalConfig(stages=(1,), stage_photons=(1.0,), image_photons=(0.0,))
     with pytest.raises(ValueError, match="image_photons must have the same"):
         RetrievalConfig(stages=(2, 1), stage_photons=(1.0, 1.0), image_photons=(1.0,))
+
+
+def test_sparsity_adds_the_l1_prior_gradient(measurements, monkeypatch):
+    """With the data gradient set to zero, one SGD step moves every masked voxel down by
+    step x sparsity x L_empty x V (the L1 prior's gradient, V the voxel volume, L_empty the
+    loss of a dark medium at the stage's pixels) and leaves the rest at zero."""
+    import cloudct.retrieval.loop as loop
+
+    real = loop.loss_and_gradient
+
+    def data_gradient_zero(*args, **kwargs):
+        result = real(*args, **kwargs)
+        result.gradient = np.zeros_like(result.gradient)
+        return result
+
+    monkeypatch.setattr(loop, "loss_and_gradient", data_gradient_zero)
+    config = RetrievalConfig(iterations=0, photons=1_000, optimizer="sgd", step=50.0,
+                             stages=(2,), gradient_smoothing=(0.0,), image_photons=(1.0,),
+                             sparsity=0.2)
+    start = initial_guess()
+    run = Retrieval(measurements, start, config)
+    run.step()
+    coarse = coarse_measurements(measurements, 2)["radiance"].values
+    dark_loss = 0.5 * np.sum(coarse**2)
+    x = start["x"].values
+    volume = (x[1] - x[0]) ** 3  # the test grid is cubic
+    moved = start["cloud_extinction"].values - run.state.extinction
+    hull = start["cloud_extinction"].values > 0
+    np.testing.assert_allclose(moved[hull], 50.0 * 0.2 * dark_loss * volume, rtol=1e-9)
+    assert np.all(run.state.extinction[~hull] == 0.0)
+    with pytest.raises(ValueError, match="sparsity must be >= 0"):
+        RetrievalConfig(sparsity=-1.0)
 
 
 def test_checkpoint_from_another_run_is_refused(tmp_path, measurements):
@@ -255,9 +310,48 @@ def test_tiny_retrieval_with_recycling(measurements):
     assert result["log_epsilon"].values[-5:].mean() < 0.75 * eps0
 
 
+def test_tiny_retrieval_with_lbfgsb_windows(measurements):
+    """Every iteration an L-BFGS-B window of 8 evaluations on fixed paths: the fresh loss
+    at the windows' starts falls tenfold and epsilon by a third or more."""
+    truth = gradient_medium()
+    config = RetrievalConfig(iterations=8, period=8, **LBFGSB)
+    run = Retrieval(measurements, initial_guess(), config, truth=truth)
+    result = run.run(progress=False)
+    assert run.optimizer is None and config.gradient_smoothing == (0.0, 0.0)
+    assert config.image_photons == (1.0, 1.0)  # the L-BFGS-B defaults: two equal stores
+    eps0, _ = epsilon_delta(truth["cloud_extinction"].values,
+                            initial_guess()["cloud_extinction"].values)
+    loss = result["log_loss"].values
+    assert loss[-3:].mean() < 0.3 * loss[0], loss
+    assert result["log_epsilon"].values[-3:].mean() < 0.7 * eps0, result["log_epsilon"].values
+    assert np.all(result["log_resampled"].values == 1.0)  # new paths every window
+
+
+def test_lbfgsb_refuses_what_it_does_not_use(measurements):
+    for settings in (dict(recycling="fixed"), dict(voxel_blocks=(2,)),
+                     dict(gradient_smoothing=(1.0,)), dict(sparsity=0.1)):
+        with pytest.raises(ValueError, match="lbfgsb"):
+            RetrievalConfig(optimizer="lbfgsb", **settings)
+    with pytest.raises(ValueError, match="trust_region"):
+        RetrievalConfig(optimizer="lbfgsb", trust_region=1.5)
+    with pytest.raises(ValueError, match="optimizer must be one of"):
+        RetrievalConfig(optimizer="newton")
+    with pytest.raises(ValueError, match="no client"):
+        Retrieval(measurements, initial_guess(), RetrievalConfig(optimizer="lbfgsb"),
+                  client="tcp://127.0.0.1:1")
+    # the trust region and the sparsity fingerprint only the runs they act on
+    def run_id(**settings):
+        return Retrieval(measurements, initial_guess(), RetrievalConfig(**settings)).id
+
+    assert run_id(trust_region=0.3) == run_id(trust_region=0.5) == run_id(sparsity=0.0)
+    assert run_id(sparsity=0.1) != run_id()
+    assert run_id(optimizer="lbfgsb", trust_region=0.3) != run_id(optimizer="lbfgsb",
+                                                                  trust_region=0.5)
+
+
 def test_cli_retrieve_passes_the_coarse_to_fine_options(tmp_path, measurements, capsys):
     """``cloudct retrieve`` sets stages, photons per stage, voxel blocks, saturation window,
-    step decay and steps per stage, and records them in the result's settings."""
+    step decay, steps per stage and sparsity, and records them in the result's settings."""
     import json
 
     import xarray as xr
@@ -273,17 +367,53 @@ def test_cli_retrieve_passes_the_coarse_to_fine_options(tmp_path, measurements, 
             "--iterations", "2", "--photons", "2000", "--stages", "2", "1",
             "--stage-photons", "0.5", "2", "--voxel-blocks", "2", "1",
             "--saturation-window", "4", "--step-decay", "0.5", "--stage-steps", "1", "0.25",
-            "--gradient-smoothing", "1.5", "0", "--image-photons", "1", "3", "-o", str(out)]
+            "--gradient-smoothing", "1.5", "0", "--image-photons", "1", "3", "--sparsity",
+            "0.05", "-o", str(out)]
     assert main(argv) == 0
     config = json.loads(xr.load_dataset(out).attrs["config"])
     assert config["stages"] == [2, 1] and config["stage_photons"] == [0.5, 2.0]
     assert config["voxel_blocks"] == [2, 1] and config["stage_steps"] == [1.0, 0.25]
     assert config["gradient_smoothing"] == [1.5, 0.0] and config["image_photons"] == [1.0, 3.0]
     assert (config["saturation_window"], config["step_decay"]) == (4, 0.5)
+    assert config["sparsity"] == 0.05
     assert main(argv) != 0  # the result exists
     assert "exists (use --overwrite)" in capsys.readouterr().err
+    quasi_newton = [*argv[:4], "--iterations", "1", "--photons", "2000", "--optimizer",
+                    "lbfgsb", "--trust-region", "0.2", "--period", "3", "-o",
+                    str(tmp_path / "lbfgsb.nc")]
+    assert main(quasi_newton) == 0
+    config = json.loads(xr.load_dataset(tmp_path / "lbfgsb.nc").attrs["config"])
+    assert (config["optimizer"], config["trust_region"], config["period"]) == ("lbfgsb", 0.2, 3)
+    assert config["stages"] == [2] and config["gradient_smoothing"] == [0.0]
     assert main([*argv[:-2], "--voxel-blocks", "2", "-o", str(tmp_path / "other.nc")]) != 0
     assert "same, non-zero length" in capsys.readouterr().err
+
+
+def test_cli_demo_runs_the_whole_chain_with_the_retrieve_defaults(tmp_path, capsys):
+    """``cloudct demo`` (the README's main job) at a tiny photon count: measurements, truth,
+    carved start, result, checkpoint and report are written, the run uses ``cloudct
+    retrieve``'s defaults with the measured L1 prior, and a second demo into the same
+    directory is refused."""
+    import json
+
+    import xarray as xr
+
+    from cloudct.cli import main
+
+    out = tmp_path / "demo"
+    argv = ["demo", "-o", str(out), "--measurement-photons", "100000", "--iterations", "2",
+            "--photons", "2000"]
+    assert main(argv) == 0
+    assert "epsilon" in capsys.readouterr().out
+    for name in ("measurements.nc", "truth.nc", "init.nc", "result.nc", "checkpoint.nc",
+                 "report/summary.md"):
+        assert (out / name).is_file(), name
+    result = xr.load_dataset(out / "result.nc")
+    assert RetrievalConfig(**json.loads(result.attrs["config"])) == RetrievalConfig(
+        iterations=2, photons=2_000, sparsity=0.01)
+    assert np.isfinite(result["log_epsilon"].values).all() and result.sizes["iteration"] == 2
+    assert main(argv) != 0
+    assert "exists (use --overwrite)" in capsys.readouterr().err
 
 
 def test_cli_report_writes_figures_and_the_error_split(tmp_path, measurements):

@@ -10,7 +10,7 @@ import xarray as xr
 
 from cloudct.mc.render import add_distributed_options
 from cloudct.medium import load_medium
-from cloudct.retrieval.loop import Retrieval, RetrievalConfig
+from cloudct.retrieval.loop import OPTIMIZERS, Retrieval, RetrievalConfig
 from cloudct.retrieval.report import write_report
 
 
@@ -34,7 +34,8 @@ def config_from_options(args: argparse.Namespace, **settings) -> RetrievalConfig
     """The run options of :func:`add_run_options` as a configuration; ``settings``
     (other :class:`RetrievalConfig` fields) are added and take precedence."""
     options = dict(
-        iterations=args.iterations, photons=args.photons, step=args.step,
+        iterations=args.iterations, photons=args.photons, optimizer=args.optimizer,
+        step=args.step, trust_region=args.trust_region, sparsity=args.sparsity,
         time_limit=args.time_limit, recycling=args.recycling, period=args.period,
         stages=args.stages, stage_photons=args.stage_photons, voxel_blocks=args.voxel_blocks,
         stage_steps=args.stage_steps, gradient_smoothing=args.gradient_smoothing,
@@ -67,7 +68,7 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
             run = Retrieval.resume(checkpoint, measurements, initial, truth=truth,
                                    iterations=args.iterations, **where)
         else:
-            config = config_from_options(args, optimizer=args.optimizer, seed=args.seed,
+            config = config_from_options(args, seed=args.seed,
                                          checkpoint_every=args.checkpoint_every)
             run = Retrieval(measurements, initial, config, truth=truth, **where)
         result = run.run(checkpoint=checkpoint, progress=None)
@@ -99,6 +100,7 @@ def _cli_demo(args: argparse.Namespace) -> int:
     from data_synth.measurements import save_measurements, synthesize_measurements
 
     out = Path(args.output)
+    _refuse_overwrite(out / "result.nc", args.overwrite)
     out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     truth = single_cloud_medium()
@@ -124,21 +126,33 @@ def _cli_demo(args: argparse.Namespace) -> int:
 
 
 def add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) -> None:
-    """The options of a retrieval run (iterations, photons, step, coarse-to-fine stages,
-    recycling) with these defaults for ``--iterations`` and ``--photons``."""
+    """The options of a retrieval run (iterations, photons, optimiser, step, coarse-to-fine
+    stages, recycling) with these defaults for ``--iterations`` and ``--photons``; the others
+    default to :class:`RetrievalConfig`'s."""
     p.add_argument("--iterations", type=int, default=iterations)
-    p.add_argument("--photons", type=int, default=photons, help="photons per iteration")
-    p.add_argument("--step", type=float, default=2.0, help="step size [1/km per iteration]")
+    p.add_argument("--photons", type=int, default=photons,
+                   help="gradient photons per iteration (the images': x --image-photons)")
+    p.add_argument("--optimizer", choices=OPTIMIZERS, default=RetrievalConfig.optimizer,
+                   help="adam, sgd, or lbfgsb (L-BFGS-B windows on recycled paths)")
+    p.add_argument("--step", type=float, default=RetrievalConfig.step,
+                   help="step size [1/km per iteration] (adam, sgd)")
+    p.add_argument("--trust-region", type=float, default=RetrievalConfig.trust_region,
+                   help="lbfgsb: relative change of a voxel's extinction per window")
+    p.add_argument("--sparsity", type=float, default=RetrievalConfig.sparsity,
+                   help="weight of an L1 prior on the cloud extinction [1/km^2]: the loss "
+                        "gains this x the loss of a dark medium x the cloud's extinction "
+                        "cross-section [km^2] (0: none)")
     p.add_argument("--time-limit", type=float, default=None, help="stop after S seconds")
     p.add_argument("--recycling", choices=("none", "fixed", "adaptive"), default="none",
                    help="path recycling policy (seed paper Alg. 2)")
-    p.add_argument("--period", type=int, default=30,
-                   help="recycling period N_r (fixed) or maximum period (adaptive)")
+    p.add_argument("--period", type=int, default=RetrievalConfig.period,
+                   help="recycling period N_r (fixed) or maximum period (adaptive); lbfgsb: "
+                        "evaluations per window")
     p.add_argument("--stages", type=int, nargs="+", default=list(RetrievalConfig.stages),
                    help="coarse-to-fine stages: pixel block sizes, coarse to fine")
-    p.add_argument("--stage-photons", type=float, nargs="+",
-                   default=list(RetrievalConfig.stage_photons),
-                   help="per stage: photons per iteration as a multiple of --photons")
+    p.add_argument("--stage-photons", type=float, nargs="+", default=None,
+                   help="per stage: photons per iteration as a multiple of --photons (default "
+                        "%(default)s; None: 1 at every stage)")
     p.add_argument("--voxel-blocks", type=int, nargs="+", default=None,
                    help="per stage: voxels tied in blocks of this size (default %(default)s; "
                         "None: 1 at every stage)")
@@ -147,11 +161,12 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) -
                         "at every stage)")
     p.add_argument("--gradient-smoothing", type=float, nargs="+", default=None,
                    help="per stage: Gaussian sigma [voxels] the gradient is smoothed with "
-                        "inside the hull (default %(default)s; None: 0, no smoothing, "
-                        "at every stage)")
+                        "inside the hull (default %(default)s; None: 1 at every stage, 0 "
+                        "with lbfgsb)")
     p.add_argument("--image-photons", type=float, nargs="+", default=None,
                    help="per stage: photons of the residual's images as a multiple of the "
-                        "gradient's (default %(default)s; None: 1 at every stage)")
+                        "gradient's (default %(default)s; None: 4 at every stage, 1 with "
+                        "lbfgsb)")
     p.add_argument("--saturation-window", type=int, default=RetrievalConfig.saturation_window,
                    help="iterations over which the loss must keep falling to stay in a stage")
     p.add_argument("--step-decay", type=float, default=RetrievalConfig.step_decay,
@@ -172,7 +187,6 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument("--checkpoint", help="checkpoint file (default: OUTPUT.checkpoint.nc)")
     r.add_argument("--checkpoint-every", type=int, default=20)
     r.add_argument("--resume", action="store_true", help="continue from the checkpoint")
-    r.add_argument("--optimizer", choices=("adam", "sgd"), default="adam")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--overwrite", action="store_true")
     add_run_options(r, iterations=300, photons=100_000)
@@ -189,15 +203,15 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     d = subparsers.add_parser(
         "demo", help="the whole chain on the bundled single cloud (a few minutes)",
         description="Synthesise measurements of the bundled single cloud, carve, retrieve and "
-        "report. The run's defaults are those of the best measured single-cloud retrieval "
-        "(one stage at 2x2 pixel blocks, gradient smoothed over 1 voxel, 4x photons for the "
-        "residual's images, step 1 /km halved when the loss saturates), with 50,000 "
-        "gradient photons per iteration.",
+        "report. The run's settings are those of the best measured single-cloud retrieval: "
+        "cloudct retrieve's defaults (one stage at 2x2 pixel blocks, gradient smoothed over "
+        "1 voxel, 4x photons for the residual's images, step 1 /km halved when the loss "
+        "saturates) with the L1 prior --sparsity 0.01, and 60 iterations of 50,000 "
+        "gradient photons.",
     )
-    d.add_argument("-o", "--output", default="cloudct_demo")
+    d.add_argument("-o", "--output", default="cloudct_demo", help="output directory")
+    d.add_argument("--overwrite", action="store_true",
+                   help="replace the results of an earlier demo in the output directory")
     d.add_argument("--measurement-photons", type=int, default=10_000_000)
     add_run_options(d, iterations=60, photons=50_000)
-    # the settings of the best measured single-cloud run (docs/benchmarks.md), from the
-    # soft-carved start; the seed paper's step of 2 /km at voxel resolution walks away from it
-    d.set_defaults(func=_cli_demo, stages=[2], stage_photons=[1.0], image_photons=[4.0],
-                   gradient_smoothing=[1.0], step=1.0, step_decay=0.5)
+    d.set_defaults(func=_cli_demo, sparsity=0.01)  # measured on this cloud (benchmarks.md)
