@@ -249,6 +249,7 @@ class Retrieval:
         self.id = run_id(measurements, self.config)
         self._recycler = None
         self._recycler_stage = -1
+        self._l1_gradients: dict[int, np.ndarray] = {}
         self._stage_data = [coarse_measurements(measurements, b) for b in self.config.stages]
         self.state = RetrievalState(
             iteration=0, stage=0,
@@ -303,12 +304,14 @@ class Retrieval:
         hull's cloud-free voxels, whose gradient is mostly noise."""
         if self.config.sparsity == 0.0:
             return 0.0
-        data = self._stage_data[stage]
-        measured = data["radiance"].values
-        empty = image_loss(np.zeros_like(measured), measured, pixel_weights(data))[0]
-        dx, dy, dz = (np.diff(e) for e in cell_edges(self.template))
-        volume = dx[:, None, None] * dy[None, :, None] * dz[None, None, :]
-        return self.config.sparsity * empty * volume
+        if stage not in self._l1_gradients:  # once per stage (pixel_weights warns of NaNs)
+            data = self._stage_data[stage]
+            measured = data["radiance"].values
+            empty = image_loss(np.zeros_like(measured), measured, pixel_weights(data))[0]
+            dx, dy, dz = (np.diff(e) for e in cell_edges(self.template))
+            volume = dx[:, None, None] * dy[None, :, None] * dz[None, None, :]
+            self._l1_gradients[stage] = self.config.sparsity * empty * volume
+        return self._l1_gradients[stage]
 
     def _stage_step(self) -> float:
         """The step multiple of this iteration: the stage's, times the step decay."""
