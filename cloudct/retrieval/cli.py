@@ -10,7 +10,7 @@ import xarray as xr
 
 from cloudct.mc.render import add_distributed_options
 from cloudct.medium import load_medium
-from cloudct.retrieval.loop import OPTIMIZERS, Retrieval, RetrievalConfig
+from cloudct.retrieval.loop import OPTIMIZERS, RECYCLING, Retrieval, RetrievalConfig
 from cloudct.retrieval.report import write_report
 
 
@@ -143,7 +143,7 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) -
                         "gains this x the loss of a dark medium x the cloud's extinction "
                         "cross-section [km^2] (0: none)")
     p.add_argument("--time-limit", type=float, default=None, help="stop after S seconds")
-    p.add_argument("--recycling", choices=("none", "fixed", "adaptive"), default="none",
+    p.add_argument("--recycling", choices=RECYCLING, default=RetrievalConfig.recycling,
                    help="path recycling policy (seed paper Alg. 2)")
     p.add_argument("--period", type=int, default=RetrievalConfig.period,
                    help="recycling period N_r (fixed) or maximum period (adaptive); lbfgsb: "

@@ -313,6 +313,11 @@ class Retrieval:
             self._l1_gradients[stage] = self.config.sparsity * empty * volume
         return self._l1_gradients[stage]
 
+    def _seed(self, stream: int) -> int:
+        """The seed of one of the run's random streams (an iteration's photons, a stage's
+        recycler): fixed by the run's seed, so that a resumed run repeats them."""
+        return self.config.seed * 1_000_003 + stream
+
     def _stage_step(self) -> float:
         """The step multiple of this iteration: the stage's, times the step decay."""
         return self.config.stage_steps[self.state.stage] * self.state.step_scale
@@ -322,7 +327,7 @@ class Retrieval:
         s = self.state
         window = lbfgsb_window(
             self.medium(), self._stage_data[s.stage], self.mask, photons=photons,
-            photons_b=gradient_photons, seed=self.config.seed * 1_000_003 + s.iteration,
+            photons_b=gradient_photons, seed=self._seed(s.iteration),
             trust_region=min(self.config.trust_region * self._stage_step(), 1.0),
             evaluations=self.config.period, backend=self.backend,
         )
@@ -338,7 +343,7 @@ class Retrieval:
         if self.config.recycling == "none":
             result = loss_and_gradient(
                 self.medium(), self._stage_data[s.stage], photons=photons,
-                gradient_photons=gradient_photons, seed=self.config.seed * 1_000_003 + s.iteration,
+                gradient_photons=gradient_photons, seed=self._seed(s.iteration),
                 backend=self.backend, client=self.client,
             )
             loss, gradient, resampled, ess = result.loss, result.gradient, 1.0, math.nan
@@ -368,7 +373,7 @@ class Retrieval:
             settings = dict(
                 photons=photons, gradient_photons=gradient_photons,
                 policy=self.config.policy(), variable=self.mask,
-                seed=self.config.seed * 1_000_003 + 7919 * (s.stage + 1),
+                seed=self._seed(7919 * (s.stage + 1)),
             )
             if self.client is None:
                 from cloudct.recycling.recycler import Recycler
