@@ -310,6 +310,39 @@ def test_tiny_retrieval_with_recycling(measurements):
     assert result["log_epsilon"].values[-5:].mean() < 0.75 * eps0
 
 
+def test_recycling_memory_chooses_how_the_paths_are_stored(measurements):
+    """``recycling_memory`` is the recycler's budget: a budget that cannot hold the camera
+    connections stores voxel crossings, a larger one connections (which replay faster);
+    it does not enter the run id (storage modes differ in rounding only)."""
+    from cloudct.recycling.store import MemoryBudgetError
+
+    def stores(memory):
+        config = RetrievalConfig(iterations=1, recycling="fixed", period=5,
+                                 recycling_memory=memory, **CONFIG)
+        run = Retrieval(measurements, initial_guess(), config)
+        run.run(progress=False)
+        return run, run._recycler.image_store
+
+    def crossings_bytes(store):  # the store without its camera connections
+        return store.nbytes - sum(
+            a.nbytes for name, a in store.arrays._asdict().items()
+            if name.startswith("connection_")
+        )
+
+    run, store = stores(1.0)
+    assert store.storage == run._recycler.gradient_store.storage == "connections"
+    crossings = crossings_bytes(store) + crossings_bytes(run._recycler.gradient_store)
+    small, store = stores((crossings + run._recycler.nbytes) / 2 / 2**30)  # halfway
+    assert store.storage == small._recycler.gradient_store.storage == "crossings"
+    assert run.id == small.id == Retrieval(measurements, initial_guess(),
+                                           RetrievalConfig(recycling="fixed", period=5,
+                                                           **CONFIG)).id
+    with pytest.raises(MemoryBudgetError):
+        stores(1e-6)
+    with pytest.raises(ValueError, match="recycling_memory"):
+        RetrievalConfig(recycling_memory=0.0)
+
+
 def test_tiny_retrieval_with_lbfgsb_windows(measurements):
     """Every iteration an L-BFGS-B window of 8 evaluations on fixed paths: the fresh loss
     at the windows' starts falls by more than two thirds (about tenfold, seed 0) and
@@ -369,7 +402,7 @@ def test_cli_retrieve_passes_the_coarse_to_fine_options(tmp_path, measurements, 
             "--stage-photons", "0.5", "2", "--voxel-blocks", "2", "1",
             "--saturation-window", "4", "--step-decay", "0.5", "--stage-steps", "1", "0.25",
             "--gradient-smoothing", "1.5", "0", "--image-photons", "1", "3", "--sparsity",
-            "0.05", "-o", str(out)]
+            "0.05", "--min-ess", "0.4", "--recycling-memory", "0.5", "-o", str(out)]
     assert main(argv) == 0
     config = json.loads(xr.load_dataset(out).attrs["config"])
     assert config["stages"] == [2, 1] and config["stage_photons"] == [0.5, 2.0]
@@ -377,6 +410,7 @@ def test_cli_retrieve_passes_the_coarse_to_fine_options(tmp_path, measurements, 
     assert config["gradient_smoothing"] == [1.5, 0.0] and config["image_photons"] == [1.0, 3.0]
     assert (config["saturation_window"], config["step_decay"]) == (4, 0.5)
     assert config["sparsity"] == 0.05
+    assert (config["min_ess"], config["recycling_memory"]) == (0.4, 0.5)
     assert main(argv) != 0  # the result exists
     assert "exists (use --overwrite)" in capsys.readouterr().err
     quasi_newton = [*argv[:4], "--iterations", "1", "--photons", "2000", "--optimizer",

@@ -97,7 +97,7 @@ def camera_arrays(cameras: list[Camera]) -> CameraArrays:
     )
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def project(cams, view, px, py, pz):
     """Pixel of camera ``view`` seeing the point (px, py, pz).
 

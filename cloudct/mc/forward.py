@@ -95,7 +95,7 @@ def put_record(record, row, kind, grid, px, py, pz, ux, uy, uz, ix, iy, iz, opti
         record.voxel[row] = (ix * ny + iy) * nz + iz
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def connection_angular(grid, bank, ix, iy, iz, mu, ground_albedo):
     """Angular factor of a local estimate from voxel (ix, iy, iz): the mixture phase
     function at the scattering cosine ``mu`` (``ground_albedo < 0``: a scattering event),

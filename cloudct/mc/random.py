@@ -30,7 +30,7 @@ DOMAIN_BACKWARD = 2
 DOMAIN_DRT = 3
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def mix64(z):
     """The SplitMix64 output function (a bijective 64-bit mixer)."""
     z = (z ^ (z >> _S30)) * _MIX1
@@ -45,7 +45,7 @@ def stream_start(seed, domain, index):
     return mix64(key ^ (np.uint64(index) * _GOLDEN))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def uniform(state):
     """A uniform number in the open interval (0, 1) and the advanced state."""
     state = state + _GOLDEN

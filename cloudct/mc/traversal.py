@@ -78,7 +78,7 @@ def locate(edges, p, d):
     return i
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _distance_to_face(edges, i, p, d):
     """Distance along a unit-direction component ``d`` from ``p`` to the next face of cell i."""
     if d > 0.0:

@@ -31,7 +31,7 @@ class OpticalGrid(NamedTuple):
     phase_index: np.ndarray  # int32[ntype, nx, ny, nz], row of the PhaseBank
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def total_extinction(grid: OpticalGrid, ix: int, iy: int, iz: int) -> float:
     """beta = sum_j beta^(j), Eq. (2) [1/km]."""
     beta = 0.0
@@ -40,7 +40,7 @@ def total_extinction(grid: OpticalGrid, ix: int, iy: int, iz: int) -> float:
     return beta
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def scattering_coefficient(grid: OpticalGrid, ix: int, iy: int, iz: int) -> float:
     """beta_s = sum_j w^(j) beta^(j), Eqs. (2)-(3) [1/km]."""
     beta_s = 0.0
@@ -49,7 +49,7 @@ def scattering_coefficient(grid: OpticalGrid, ix: int, iy: int, iz: int) -> floa
     return beta_s
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def effective_albedo(grid: OpticalGrid, ix: int, iy: int, iz: int) -> float:
     """w = sum_j w^(j) beta^(j) / beta = beta_s / beta, Eq. (4); 0 where beta = 0."""
     beta = total_extinction(grid, ix, iy, iz)
@@ -58,7 +58,7 @@ def effective_albedo(grid: OpticalGrid, ix: int, iy: int, iz: int) -> float:
     return scattering_coefficient(grid, ix, iy, iz) / beta
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def mixture_phase_function(
     grid: OpticalGrid, bank: PhaseBank, ix: int, iy: int, iz: int, mu: float
 ) -> float:
@@ -97,7 +97,7 @@ def choose_particle_type(grid: OpticalGrid, ix: int, iy: int, iz: int, u: float)
     return last
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def scattering_log_derivative(
     grid: OpticalGrid, bank: PhaseBank, ptype: int, ix: int, iy: int, iz: int, mu: float
 ) -> float:

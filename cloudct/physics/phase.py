@@ -50,20 +50,20 @@ class PhaseBank(NamedTuple):
 # --------------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def rayleigh_phase(mu: float) -> float:
     """Rayleigh phase function per sr (unpolarised, no depolarisation)."""
     return 3.0 / (4.0 * FOUR_PI) * (1.0 + mu * mu)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def henyey_greenstein_phase(mu: float, g: float) -> float:
     """Henyey-Greenstein phase function per sr, |g| < 1."""
     d = 1.0 + g * g - 2.0 * g * mu
     return (1.0 - g * g) / (FOUR_PI * d * math.sqrt(d))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _table_interval(x: np.ndarray, lo: int, hi: int, v: float) -> int:
     """Index i in [lo, hi - 2] with x[i] <= v < x[i + 1] (clamped), by binary search."""
     a = lo
@@ -77,7 +77,7 @@ def _table_interval(x: np.ndarray, lo: int, hi: int, v: float) -> int:
     return a
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def tabulated_phase(bank: PhaseBank, ip: int, mu: float) -> float:
     """Tabulated phase function per sr: linear interpolation in mu between nodes."""
     lo = bank.table_start[ip]
@@ -89,7 +89,7 @@ def tabulated_phase(bank: PhaseBank, ip: int, mu: float) -> float:
     return bank.table_pdf[i] + t * (bank.table_pdf[i + 1] - bank.table_pdf[i])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def phase_function(bank: PhaseBank, ip: int, mu: float) -> float:
     """Phase function ``ip`` of the bank at scattering cosine ``mu``, per sr."""
     kind = bank.kind[ip]

@@ -81,7 +81,7 @@ class StoreArrays(NamedTuple):
     connection_length: np.ndarray  # float64[ncc]: length inside it, km
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def decode_voxel(v, ny, nz):
     """(ix, iy, iz) of the flat voxel index (ix * ny + iy) * nz + iz."""
     iz = v % nz
@@ -106,7 +106,7 @@ def flat_total_extinction(grid):
 # ----------------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def segment_optical_depth(grid, beta, S, k, use_crossings, periodic, gradient, weight):
     """Optical depth of segment k (record k - 1 to record k) under ``grid``.
 
@@ -139,7 +139,7 @@ def segment_optical_depth(grid, beta, S, k, use_crossings, periodic, gradient, w
     )[7]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def segment_term(grid, beta, S, k, use_crossings, periodic):
     """log of the medium-dependent sampling probability of segment k: log beta(x_k) - tau
     for a segment ending in a scattering vertex, -tau for one ending on a face."""
@@ -152,7 +152,7 @@ def segment_term(grid, beta, S, k, use_crossings, periodic):
     return -tau
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def scattering_cosine(S, k):
     """Cosine of the scattering angle at record k (between segments k and k + 1)."""
     return (
@@ -162,7 +162,7 @@ def scattering_cosine(S, k):
     )
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def direction_term(grid, bank, S, k):
     """log f_p,mixture at SCATTER record k for the direction the path took from it (Eq. 5:
     the type choice by beta_s^(j) and that type's phase function sample the mixture)."""
@@ -193,7 +193,7 @@ def path_log_ratio(grid, bank, beta, S, p, use_crossings, periodic):
 # ----------------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def stored_local_estimate(
     grid, bank, cams, beta, S, k, ix, iy, iz, weight, event_albedo, mode, image, residual,
     gradient,

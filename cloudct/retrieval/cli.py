@@ -37,6 +37,7 @@ def config_from_options(args: argparse.Namespace, **settings) -> RetrievalConfig
         iterations=args.iterations, photons=args.photons, optimizer=args.optimizer,
         step=args.step, trust_region=args.trust_region, sparsity=args.sparsity,
         time_limit=args.time_limit, recycling=args.recycling, period=args.period,
+        min_ess=args.min_ess, recycling_memory=args.recycling_memory,
         stages=args.stages, stage_photons=args.stage_photons, voxel_blocks=args.voxel_blocks,
         stage_steps=args.stage_steps, gradient_smoothing=args.gradient_smoothing,
         image_photons=args.image_photons,
@@ -148,6 +149,12 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) -
     p.add_argument("--period", type=int, default=RetrievalConfig.period,
                    help="recycling period N_r (fixed) or maximum period (adaptive); lbfgsb: "
                         "evaluations per window")
+    p.add_argument("--min-ess", type=float, default=RetrievalConfig.min_ess,
+                   help="adaptive recycling: resample when the ESS fraction falls below this")
+    p.add_argument("--recycling-memory", type=float, default=None, metavar="GIB",
+                   help="memory for the two path stores [GiB] (default: camera connections "
+                        "while a store fits 2 GiB, else voxel crossings); camera connections "
+                        "replay fastest")
     p.add_argument("--stages", type=int, nargs="+", default=list(RetrievalConfig.stages),
                    help="coarse-to-fine stages: pixel block sizes, coarse to fine")
     p.add_argument("--stage-photons", type=float, nargs="+", default=None,

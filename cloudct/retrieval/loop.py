@@ -90,6 +90,8 @@ class RetrievalConfig:
     period: int = 30  # fixed period N_r, the adaptive policy's maximum period, or lbfgsb's
     # evaluations per window
     min_ess: float = 0.5  # adaptive: resample when ESS / paths falls below this
+    recycling_memory: float | None = None  # GiB for both path stores (None: camera
+    # connections while a store fits 2 GiB; see cloudct.recycling.store)
     trust_region: float = 0.3  # lbfgsb: relative change of a voxel's extinction per window
     sparsity: float = 0.0  # 1/km^2: weight of the L1 prior (Retrieval.l1_gradient)
 
@@ -126,6 +128,10 @@ class RetrievalConfig:
             raise ValueError(f"recycling must be one of {RECYCLING}, got {self.recycling!r}")
         if not 0.0 < self.trust_region <= 1.0:
             raise ValueError(f"trust_region must be in (0, 1], got {self.trust_region}")
+        if self.recycling_memory is not None and not self.recycling_memory > 0.0:
+            raise ValueError(
+                f"recycling_memory must be a positive number of GiB, got {self.recycling_memory}"
+            )
         if self.sparsity < 0.0:
             raise ValueError(f"sparsity must be >= 0, got {self.sparsity}")
         if quasi_newton and (
@@ -142,6 +148,10 @@ class RetrievalConfig:
         """Photons of an iteration at ``stage``: (images of the residual, gradient)."""
         gradient = max(int(self.photons * self.stage_photons[stage]), 1)
         return max(int(round(gradient * self.image_photons[stage])), 1), gradient
+
+    def recycling_bytes(self) -> float | None:
+        """The path stores' memory budget in bytes (None: the recycler's default)."""
+        return None if self.recycling_memory is None else self.recycling_memory * 2**30
 
     def policy(self):
         """The recycling policy of these settings (None without recycling)."""
@@ -179,7 +189,8 @@ def coarse_measurements(measurements: xr.Dataset, block: int) -> xr.Dataset:
 def run_id(measurements: xr.Dataset, config: RetrievalConfig) -> str:
     """A fingerprint of the measurements and settings: a checkpoint resumes only its run."""
     h = hashlib.sha256(np.ascontiguousarray(measurements["radiance"].values).tobytes())
-    ignored = ["iterations", "time_limit"]
+    # the path stores' memory picks how they are stored, which changes rounding only
+    ignored = ["iterations", "time_limit", "recycling_memory"]
     # settings added later are fingerprinted only where they act (old checkpoints resume)
     if config.optimizer != "lbfgsb":
         ignored.append("trust_region")
@@ -373,6 +384,7 @@ class Retrieval:
             settings = dict(
                 photons=photons, gradient_photons=gradient_photons,
                 policy=self.config.policy(), variable=self.mask,
+                memory_budget=self.config.recycling_bytes(),
                 seed=self._seed(7919 * (s.stage + 1)),
             )
             if self.client is None:
