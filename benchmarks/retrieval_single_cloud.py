@@ -11,7 +11,11 @@ time is reported).
 
 Reported (JSON at ``--output``): the settings, the machine and load average, the whole
 per-iteration log (loss, epsilon, delta, cumulative seconds, stage, resampling), and
-epsilon/delta at the time marks ``--marks`` (minutes; the last iteration finished by then).
+epsilon/delta at the time marks ``--marks`` (minutes; the last iteration finished by then),
+and the final medium's loss from fresh paths (``--final-loss-photons``, not timed): the
+logged losses of recycled runs come from the stored paths the steps were fitted to, and a
+single render's squared residual is biased by its variance, so runs are compared on
+``final_loss_fresh``, 1/2 sum w (I_A - m)(I_B - m) over two independent renders A and B.
 Usage::
 
     python benchmarks/retrieval_single_cloud.py --minutes 60 [--recycling none|fixed|adaptive]
@@ -36,10 +40,12 @@ sys.path.insert(0, str(HERE.parent))
 
 from common import run_header  # noqa: E402
 
-from cloudct.mc.render import single_cloud_medium  # noqa: E402
+from cloudct.mc.render import render, single_cloud_medium  # noqa: E402
+from cloudct.mc.scene import Scene  # noqa: E402
 from cloudct.retrieval.carving import PROFILES, carve, initial_medium  # noqa: E402
 from cloudct.retrieval.cli import add_run_options, config_from_options  # noqa: E402
-from cloudct.retrieval.loop import Retrieval  # noqa: E402
+from cloudct.retrieval.loop import Retrieval, coarse_measurements  # noqa: E402
+from cloudct.retrieval.loss import pixel_weights  # noqa: E402
 from data_synth.measurements import (  # noqa: E402
     load_measurements,
     save_measurements,
@@ -76,11 +82,30 @@ def at_marks(log: dict, marks_s: list[float]) -> dict:
     return out
 
 
+def fresh_loss(run: Retrieval, photons: int) -> dict:
+    """The current medium's loss at the run's current stage from two independent fresh
+    renders A and B (paths no iteration used): the unbiased 1/2 sum w (I_A - m)(I_B - m),
+    and A's squared residual (what a fresh iteration logs) for comparison."""
+    data = coarse_measurements(run.measurements, run.config.stages[run.state.stage])
+    w = pixel_weights(data)
+    m = np.nan_to_num(data["radiance"].values)
+    a, b = (
+        render(run.medium(), Scene.from_dataset(data), photons=photons, seed=10**9 + k)
+        ["radiance"].values - m
+        for k in (1, 2)
+    )
+    return {"photons": photons, "loss": 0.5 * float(np.sum(w * a * b)),
+            "squared_residual": 0.5 * float(np.sum(w * a * a))}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=60.0)
     parser.add_argument("--marks", type=float, nargs="+", default=[15.0, 60.0])
     parser.add_argument("--measurement-photons", type=int, default=20_000_000)
+    parser.add_argument("--final-loss-photons", type=int, default=1_000_000,
+                        help="photons of each of the two fresh renders of the final loss "
+                             "(0: none)")
     add_run_options(parser, iterations=1_000_000, photons=100_000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--work", default=str(HERE / "work"))
@@ -133,6 +158,8 @@ def main() -> None:
     if args.medium_output is not None:
         Path(args.medium_output).parent.mkdir(parents=True, exist_ok=True)
         retrieved.to_netcdf(args.medium_output)
+    if args.final_loss_photons > 0:
+        result["final_loss_fresh"] = fresh_loss(run, args.final_loss_photons)
     log = {k: [float(x) for x in v] for k, v in run.state.log.items()}
     result["log"] = log
     result["iterations"] = run.state.iteration
@@ -143,7 +170,8 @@ def main() -> None:
     result["load_average_end"] = os.getloadavg()
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     Path(args.output).write_text(json.dumps(result, indent=1))
-    print(json.dumps({k: result[k] for k in ("initial", "final", "marks", "iterations")},
+    print(json.dumps({k: result.get(k) for k in ("initial", "final", "marks", "iterations",
+                                                "final_loss_fresh")},
                      indent=1))
 
 

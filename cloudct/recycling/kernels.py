@@ -520,16 +520,18 @@ def write_crossings(grid, S, periodic, per_batch):
 @njit(cache=True)
 def record_connections(
     grid, cams, copies, periodic, beta, variable, S, k, trail, write, first_connection,
-    first_crossing,
+    first_crossing, connection_end, crossing_end,
 ):
     """The camera connections of event record k (the local estimates of
     :func:`~cloudct.mc.forward.local_estimate`, in its order and with its skips), each
     walked to the top of the medium under the reference: its crossings of ``variable``
     voxels are kept, the optical depth of the others (``beta`` of the reference) summed.
 
-    Counts when not ``write``; otherwise writes connection rows from ``first_connection``
-    and their crossings from ``first_crossing`` (the CSR offsets of the counting pass).
-    Returns ``(connections, variable crossings)``.
+    With ``write``, connection rows are written from ``first_connection`` and their
+    crossings from ``first_crossing``, as far as ``connection_end`` and ``crossing_end``
+    allow; connection c's number of crossings goes to ``connection_crossing_start[c + 1]``
+    (made offsets once all are written). Returns ``(connections, variable crossings)``,
+    all of them, written or not.
     """
     ny = grid.y_edges.size - 1
     nz = grid.z_edges.size - 1
@@ -563,18 +565,17 @@ def record_connections(
                           INF, trail)
                 frozen = 0.0
                 c = first_connection + n
-                if write:
-                    S.connection_crossing_start[c] = q
+                q_first = q
                 for m in range(trail.count[0]):
                     v = trail.voxel[m]
                     if variable[v]:
-                        if write:
+                        if write and q < crossing_end:
                             S.connection_voxel[q] = v
                             S.connection_length[q] = trail.length[m]
                         q += 1
                     else:
                         frozen += beta[v] * trail.length[m]
-                if write:
+                if write and c < connection_end:
                     S.connection_pixel[c] = (view * cams.nrows + row) * cams.ncols + col
                     if ground:
                         S.connection_cosine[c] = cz
@@ -585,7 +586,7 @@ def record_connections(
                         )
                     S.connection_factor[c] = inv_r2_omega
                     S.connection_tau[c] = frozen
-                    S.connection_crossing_start[c + 1] = q
+                    S.connection_crossing_start[c + 1] = q - q_first
                 n += 1
     return n, q - first_crossing
 
@@ -593,26 +594,30 @@ def record_connections(
 @njit(parallel=True, cache=True)
 def connection_batches(
     grid, cams, copies, periodic, beta, variable, S, per_batch, trail_capacity, write,
-    connections, crossings,
+    connections, crossings, batch_connection, batch_crossing,
 ):
-    """Count (``write`` False: per record into ``connections`` and ``crossings``) or write
-    (``write`` True: from the CSR offsets ``S.connection_start`` and ``crossings``, now the
-    first crossing row of each record) the camera connections of every event record."""
-    nbatch = S.slot.size // per_batch
-    for b in prange(nbatch):
+    """The camera connections of the event records of batches 0 .. B - 1
+    (``batch_connection`` and ``batch_crossing`` hold B + 1 offsets): their number and
+    their crossings of variable voxels per record into ``connections`` and ``crossings``
+    (all of them, always) and, with ``write``, the connections themselves, those of batch b
+    in rows ``batch_connection[b] ..`` and their crossings in rows ``batch_crossing[b] ..``,
+    as far as the next batch's offsets (see :func:`record_connections`)."""
+    for b in prange(batch_connection.size - 1):
         trail = Trail(
             np.zeros(trail_capacity, S.voxel.dtype), np.zeros(trail_capacity),
             np.zeros(1, np.int64), np.zeros(1),
         )
+        c = batch_connection[b]
+        q = batch_crossing[b]
         for i in range(b * per_batch, (b + 1) * per_batch):
             for k in range(S.path_start[i] + 1, S.path_start[i + 1]):
                 if S.kind[k] != SCATTER and S.kind[k] != GROUND:
                     continue
-                first = S.connection_start[k] if write else 0
                 n, m = record_connections(
-                    grid, cams, copies, periodic, beta, variable, S, k, trail, write, first,
-                    crossings[k] if write else 0,
+                    grid, cams, copies, periodic, beta, variable, S, k, trail, write, c, q,
+                    batch_connection[b + 1], batch_crossing[b + 1],
                 )
-                if not write:
-                    connections[k] = n
-                    crossings[k] = m
+                connections[k] = n
+                crossings[k] = m
+                c += n
+                q += m
