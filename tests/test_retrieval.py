@@ -310,6 +310,26 @@ def test_tiny_retrieval_with_recycling(measurements):
     assert result["log_epsilon"].values[-5:].mean() < 0.75 * eps0
 
 
+def test_tiny_retrieval_recycling_only_the_images(measurements):
+    """``recycle_gradient=False``: the residual's images come from the recycled store
+    (resampled every 5th iteration), the gradient from fresh paths every iteration; epsilon
+    falls as with both stores recycled, and no gradient store is ever recorded."""
+    truth = gradient_medium()
+    config = RetrievalConfig(iterations=40, recycling="fixed", period=5,
+                             recycle_gradient=False, **CONFIG)
+    run = Retrieval(measurements, initial_guess(), config, truth=truth)
+    result = run.run(progress=False)
+    assert run._recycler.gradient_store is None
+    assert 8 <= result["log_resampled"].values.sum() <= 10
+    eps0, _ = epsilon_delta(truth["cloud_extinction"].values,
+                            initial_guess()["cloud_extinction"].values)
+    assert result["log_epsilon"].values[-5:].mean() < 0.75 * eps0
+    both = RetrievalConfig(recycling="fixed", period=5, **CONFIG)
+    assert run.id != Retrieval(measurements, initial_guess(), both).id
+    with pytest.raises(ValueError, match="needs a recycling policy"):
+        RetrievalConfig(recycle_gradient=False)
+
+
 def test_recycling_memory_chooses_how_the_paths_are_stored(measurements):
     """``recycling_memory`` is the recycler's budget: a budget that cannot hold the camera
     connections stores voxel crossings, a larger one connections (which replay faster);
@@ -402,7 +422,8 @@ def test_cli_retrieve_passes_the_coarse_to_fine_options(tmp_path, measurements, 
             "--stage-photons", "0.5", "2", "--voxel-blocks", "2", "1",
             "--saturation-window", "4", "--step-decay", "0.5", "--stage-steps", "1", "0.25",
             "--gradient-smoothing", "1.5", "0", "--image-photons", "1", "3", "--sparsity",
-            "0.05", "--min-ess", "0.4", "--recycling-memory", "0.5", "-o", str(out)]
+            "0.05", "--min-ess", "0.4", "--recycling-memory", "0.5", "--fresh-gradient",
+            "--recycling", "fixed", "-o", str(out)]
     assert main(argv) == 0
     config = json.loads(xr.load_dataset(out).attrs["config"])
     assert config["stages"] == [2, 1] and config["stage_photons"] == [0.5, 2.0]
@@ -411,6 +432,7 @@ def test_cli_retrieve_passes_the_coarse_to_fine_options(tmp_path, measurements, 
     assert (config["saturation_window"], config["step_decay"]) == (4, 0.5)
     assert config["sparsity"] == 0.05
     assert (config["min_ess"], config["recycling_memory"]) == (0.4, 0.5)
+    assert (config["recycling"], config["recycle_gradient"]) == ("fixed", False)
     assert main(argv) != 0  # the result exists
     assert "exists (use --overwrite)" in capsys.readouterr().err
     quasi_newton = [*argv[:4], "--iterations", "1", "--photons", "2000", "--optimizer",

@@ -44,6 +44,20 @@ def test_gradient_is_the_derivative_of_the_sample_average_loss(problem):
         fd = (loss(up)[0] - loss(down)[0]) / (2 * h)
         assert gradient[i] == pytest.approx(fd, rel=1e-6, abs=1e-12 * np.abs(gradient).max())
     assert loss.values[0] == value  # every evaluation is recorded, the first one first
+    # a memory budget is shared by the two stores in proportion to their paths: halfway
+    # between what they take with and without camera connections, A (2/3 of the paths)
+    # cannot keep its connections
+    assert [store.storage for store in loss.stores] == ["connections", "connections"]
+    connections = sum(
+        a.nbytes for store in loss.stores for name, a in store.arrays._asdict().items()
+        if name.startswith("connection_")
+    )
+    budget = sum(store.nbytes for store in loss.stores) - connections / 2
+    small = SampleAverageLoss(guess, measured, mask, photons=20_000, photons_b=10_000, seed=3,
+                              memory_budget=budget)
+    assert small.stores[0].storage != "connections"
+    assert sum(store.nbytes for store in small.stores) <= budget
+    assert small(x)[0] == pytest.approx(value, rel=1e-12)  # the same paths, stored otherwise
 
 
 def test_sample_average_loss_is_unbiased_where_the_squared_residual_is_not(problem):

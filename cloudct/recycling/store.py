@@ -402,7 +402,13 @@ def _record_connections(
     capacity = 4 * sum(e.size - 1 for e in k.edges) + 16
     connections = np.zeros(nrec, dtype=np.int64)
     crossings = np.zeros(nrec, dtype=np.int64)
-    run = (k.grid, k.cams, k.copies, k.periodic, beta, variable, arrays, per_batch, capacity)
+
+    def walk(S: StoreArrays, write: bool, batch_connection, batch_crossing) -> None:
+        connection_batches(
+            k.grid, k.cams, k.copies, k.periodic, beta, variable, S, per_batch, capacity,
+            write, connections, crossings, batch_connection, batch_crossing,
+        )
+
     record_bounds = arrays.path_start[::per_batch]  # each batch's first record, and the end
 
     def batch_totals(counts: np.ndarray) -> np.ndarray:
@@ -411,7 +417,7 @@ def _record_connections(
         return total[record_bounds[1:]] - total[record_bounds[:-1]]
 
     pilot = np.zeros(min(batches, 2) + 1, dtype=np.int64)
-    connection_batches(*run, False, connections, crossings, pilot, pilot)
+    walk(arrays, False, pilot, pilot)
     npilot = pilot.size - 1
     room = np.array([batch_totals(connections)[:npilot].max(),
                      batch_totals(crossings)[:npilot].max()]) * 1.2 + 16
@@ -421,8 +427,7 @@ def _record_connections(
     written = _connection_arrays(arrays, batches * room[0], batches * room[1])
     batch_connection = np.arange(batches + 1, dtype=np.int64) * room[0]
     batch_crossing = np.arange(batches + 1, dtype=np.int64) * room[1]
-    connection_batches(*run[:6], written, *run[7:], True, connections, crossings,
-                       batch_connection, batch_crossing)
+    walk(written, True, batch_connection, batch_crossing)
     per_connection, per_crossing = batch_totals(connections), batch_totals(crossings)
     nconn, ncross = int(per_connection.sum()), int(per_crossing.sum())
     need = store_bytes + connections_bytes(nrec, nconn, ncross, voxel_size)
@@ -438,7 +443,7 @@ def _record_connections(
     else:  # a second walk, to the exact places
         del written
         written = _connection_arrays(arrays, nconn, ncross)
-        connection_batches(*run[:6], written, *run[7:], True, connections, crossings, *offsets)
+        walk(written, True, *offsets)
     np.cumsum(written.connection_crossing_start, out=written.connection_crossing_start)
     connection_start = np.zeros(nrec + 1, dtype=np.int64)
     np.cumsum(connections, out=connection_start[1:])

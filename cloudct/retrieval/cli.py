@@ -38,6 +38,7 @@ def config_from_options(args: argparse.Namespace, **settings) -> RetrievalConfig
         step=args.step, trust_region=args.trust_region, sparsity=args.sparsity,
         time_limit=args.time_limit, recycling=args.recycling, period=args.period,
         min_ess=args.min_ess, recycling_memory=args.recycling_memory,
+        recycle_gradient=not args.fresh_gradient,
         stages=args.stages, stage_photons=args.stage_photons, voxel_blocks=args.voxel_blocks,
         stage_steps=args.stage_steps, gradient_smoothing=args.gradient_smoothing,
         image_photons=args.image_photons,
@@ -155,6 +156,9 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) -
                    help="memory for the two path stores [GiB] (default: camera connections "
                         "while a store fits 2 GiB, else voxel crossings); camera connections "
                         "replay fastest")
+    p.add_argument("--fresh-gradient", action="store_true",
+                   help="with --recycling: recycle only the residual's images and trace the "
+                        "gradient's paths fresh every iteration")
     p.add_argument("--stages", type=int, nargs="+", default=list(RetrievalConfig.stages),
                    help="coarse-to-fine stages: pixel block sizes, coarse to fine")
     p.add_argument("--stage-photons", type=float, nargs="+", default=None,

@@ -23,6 +23,7 @@ import xarray as xr
 from tqdm.auto import tqdm
 
 from cloudct.mc.cameras import Camera
+from cloudct.mc.gradient import score_function_gradient
 from cloudct.mc.scene import Scene
 from cloudct.medium import cell_edges, validate_medium
 from cloudct.retrieval.loss import image_loss, loss_and_gradient, pixel_weights
@@ -90,8 +91,10 @@ class RetrievalConfig:
     period: int = 30  # fixed period N_r, the adaptive policy's maximum period, or lbfgsb's
     # evaluations per window
     min_ess: float = 0.5  # adaptive: resample when ESS / paths falls below this
-    recycling_memory: float | None = None  # GiB for both path stores (None: camera
-    # connections while a store fits 2 GiB; see cloudct.recycling.store)
+    recycling_memory: float | None = None  # GiB for the two path stores of the recycling
+    # or of an lbfgsb window (None: camera connections while a store fits 2 GiB)
+    recycle_gradient: bool = True  # False: recycle only the residual's images and trace the
+    # gradient's paths fresh every iteration (Retrieval._recycled_loss_and_gradient)
     trust_region: float = 0.3  # lbfgsb: relative change of a voxel's extinction per window
     sparsity: float = 0.0  # 1/km^2: weight of the L1 prior (Retrieval.l1_gradient)
 
@@ -128,6 +131,9 @@ class RetrievalConfig:
             raise ValueError(f"recycling must be one of {RECYCLING}, got {self.recycling!r}")
         if not 0.0 < self.trust_region <= 1.0:
             raise ValueError(f"trust_region must be in (0, 1], got {self.trust_region}")
+        if not self.recycle_gradient and self.recycling == "none":
+            raise ValueError("recycle_gradient=False needs a recycling policy (it recycles "
+                             "the residual's images only)")
         if self.recycling_memory is not None and not self.recycling_memory > 0.0:
             raise ValueError(
                 f"recycling_memory must be a positive number of GiB, got {self.recycling_memory}"
@@ -196,6 +202,8 @@ def run_id(measurements: xr.Dataset, config: RetrievalConfig) -> str:
         ignored.append("trust_region")
     if config.sparsity == 0.0:
         ignored.append("sparsity")
+    if config.recycle_gradient:
+        ignored.append("recycle_gradient")
     settings = {k: v for k, v in asdict(config).items() if k not in ignored}
     h.update(json.dumps(settings, sort_keys=True).encode())
     return h.hexdigest()[:16]
@@ -341,6 +349,7 @@ class Retrieval:
             photons_b=gradient_photons, seed=self._seed(s.iteration),
             trust_region=min(self.config.trust_region * self._stage_step(), 1.0),
             evaluations=self.config.period, backend=self.backend,
+            memory_budget=self.config.recycling_bytes(),
         )
         s.extinction = window.extinction
         return window.loss
@@ -377,14 +386,24 @@ class Retrieval:
         self, photons: int, gradient_photons: int
     ) -> tuple[float, np.ndarray, float, float]:
         """Loss and gradient from the stage's recycler (seed paper Alg. 2): stored paths
-        re-evaluated under the current medium, resampled when the policy says so."""
+        re-evaluated under the current medium, resampled when the policy says so.
+
+        With ``recycle_gradient`` False only the residual's images are recycled, and the
+        gradient's paths are traced fresh (with the seed of a fresh iteration's): the
+        gradient's noise then changes every iteration, as without recycling, instead of
+        repeating for a whole period, which Adam turns into steps as large as a signal's
+        (docs/recycling.md). The images store then has the whole memory budget.
+        """
         s = self.state
+        config = self.config
         data = self._stage_data[s.stage]
         if self._recycler is None or self._recycler_stage != s.stage:
+            budget = config.recycling_bytes()
+            if budget is not None and not config.recycle_gradient:  # the images' share: all
+                budget *= (photons + gradient_photons) / photons
             settings = dict(
                 photons=photons, gradient_photons=gradient_photons,
-                policy=self.config.policy(), variable=self.mask,
-                memory_budget=self.config.recycling_bytes(),
+                policy=config.policy(), variable=self.mask, memory_budget=budget,
                 seed=self._seed(7919 * (s.stage + 1)),
             )
             if self.client is None:
@@ -402,12 +421,22 @@ class Retrieval:
             self._recycler_stage = s.stage
         w = pixel_weights(data)
         measured = data["radiance"].values
+
+        def residual(images: xr.Dataset) -> np.ndarray:
+            return image_loss(images["radiance"].values, measured, w)[1]
+
         ev = self._recycler.evaluate(
-            self.medium(),
-            residual=lambda images: image_loss(images["radiance"].values, measured, w)[1],
+            self.medium(), residual=residual if config.recycle_gradient else None
         )
         loss = image_loss(ev.images["radiance"].values, measured, w)[0]
-        return loss, ev.gradient, float(ev.info["resampled"]), float(ev.info["ess_fraction"])
+        gradient = ev.gradient
+        if not config.recycle_gradient:
+            gradient = score_function_gradient(
+                self.medium(), Scene.from_dataset(data), residual(ev.images),
+                photons=gradient_photons, seed=2 * self._seed(s.iteration) + 1,
+                backend=self.backend, client=self.client,
+            )[0]
+        return loss, gradient, float(ev.info["resampled"]), float(ev.info["ess_fraction"])
 
     def _advance_stage_if_saturated(self) -> None:
         """Next stage when the loss saturates; at the last stage, a step decay instead."""

@@ -52,7 +52,8 @@ class Window:
 class SampleAverageLoss:
     """L_AB and its gradient over the masked voxels of ``template``, from two stores of
     ``photons`` and ``photons_b`` paths recorded under ``template`` with seeds ``2 seed`` and
-    ``2 seed + 1`` (see the module documentation)."""
+    ``2 seed + 1`` (see the module documentation), sharing ``memory_budget`` (bytes, None:
+    :func:`~cloudct.recycling.store.record_paths`'s default) in proportion to their paths."""
 
     def __init__(
         self,
@@ -65,6 +66,7 @@ class SampleAverageLoss:
         seed: int,
         weights: np.ndarray | None = None,
         backend: str = "cpu",
+        memory_budget: float | None = None,
     ) -> None:
         self.template = template.copy(deep=True)
         self.mask = np.asarray(mask, bool)
@@ -73,7 +75,11 @@ class SampleAverageLoss:
         self.backend = backend
         scene = Scene.from_dataset(measurements)
         self.stores: tuple[PathStore, PathStore] = tuple(
-            record_paths(template, scene, photons=n, seed=2 * seed + i, variable=self.mask)
+            record_paths(
+                template, scene, photons=n, seed=2 * seed + i, variable=self.mask,
+                memory_budget=None if memory_budget is None
+                else memory_budget * n / (photons + photons_b),
+            )
             for i, n in enumerate((photons, photons_b))
         )
         self.values: list[float] = []  # L_AB at every evaluation
@@ -117,11 +123,13 @@ def lbfgsb_window(
     trust_region: float = 0.3,
     evaluations: int = 30,
     backend: str = "cpu",
+    memory_budget: float | None = None,
 ) -> Window:
     """One window: record stores A (``photons``) and B (``photons_b``, default ``photons``)
     under ``medium`` and run scipy's L-BFGS-B on L_AB for up to ``evaluations`` evaluations,
     each masked voxel bounded to ``(1 -+ trust_region)`` times its extinction in ``medium``
     (so a voxel at 0 stays 0: paths cannot scatter where the reference has no extinction).
+    ``memory_budget`` bounds the two stores together (bytes; see :class:`SampleAverageLoss`).
     """
     if not 0.0 < trust_region <= 1.0:
         raise ValueError(f"trust_region must be in (0, 1], got {trust_region}")
@@ -130,7 +138,7 @@ def lbfgsb_window(
     mask = np.asarray(mask, bool)
     loss = SampleAverageLoss(
         medium, measurements, mask, photons=photons, photons_b=photons_b or photons,
-        seed=seed, backend=backend,
+        seed=seed, backend=backend, memory_budget=memory_budget,
     )
     x0 = medium["cloud_extinction"].values[mask].astype(float)
     scale = 0.0  # store A's loss at x0, set by the first evaluation (L-BFGS-B's, at x0)
