@@ -1,7 +1,8 @@
 """Retrieval benchmark on the seed paper's single-cloud scene.
 
 Scene: the bundled RICO cloud 32x37x26 (the ``cloudct render`` default: Mie extinction at
-0.672 micron, air, open boundaries), sun at zenith, the nine 76x76 cameras. Noise-free
+0.672 micron, air, open boundaries), or another medium given with ``--truth`` (e.g.
+``benchmarks/two_cumuli.py``'s), sun at zenith, the nine 76x76 cameras. Noise-free
 measurements are rendered with ``--measurement-photons`` (cached in ``--work``), the
 initial medium is the space-carved hull filled in the excess profile (``--profile
 constant``: the seed paper's constant) at the fitted mean extinction
@@ -42,6 +43,7 @@ from common import run_header  # noqa: E402
 
 from cloudct.mc.render import render, single_cloud_medium  # noqa: E402
 from cloudct.mc.scene import Scene  # noqa: E402
+from cloudct.medium import load_medium  # noqa: E402
 from cloudct.retrieval.carving import PROFILES, carve, initial_medium  # noqa: E402
 from cloudct.retrieval.cli import add_run_options, config_from_options  # noqa: E402
 from cloudct.retrieval.loop import Retrieval, coarse_measurements  # noqa: E402
@@ -53,9 +55,9 @@ from data_synth.measurements import (  # noqa: E402
 )
 
 
-def measurements_for(truth, photons: int, work: Path):
-    """Noise-free measurements of the truth, rendered once and cached."""
-    path = work / f"single_cloud_measurements_{photons}.nc"
+def measurements_for(truth, photons: int, work: Path, name: str = "single_cloud"):
+    """Noise-free measurements of the truth, rendered once and cached under ``name``."""
+    path = work / f"{name}_measurements_{photons}.nc"
     if path.exists():
         return load_measurements(path)
     work.mkdir(parents=True, exist_ok=True)
@@ -115,6 +117,10 @@ def main() -> None:
     parser.add_argument("--profile", default="excess", choices=PROFILES,
                         help="shape of the carved start's extinction (cloudct.retrieval."
                              "carving.carve); the runs before 2026-11-22 05:00 used 'constant'")
+    parser.add_argument("--truth", default=None,
+                        help="the true medium (netCDF, e.g. from benchmarks/two_cumuli.py; "
+                             "default: the bundled single cloud), seen by the nine cameras "
+                             "around its box")
     parser.add_argument("--start", default=None,
                         help="start from this medium netCDF (e.g. a --medium-output; its "
                              "cloud_mask is the hull) instead of the carved hull")
@@ -122,9 +128,12 @@ def main() -> None:
     if args.time_limit is not None:
         parser.error("the run's length is --minutes")
 
-    truth = single_cloud_medium()
+    truth = single_cloud_medium() if args.truth is None else load_medium(args.truth)
     t0 = time.perf_counter()
-    measurements = measurements_for(truth, args.measurement_photons, Path(args.work))
+    measurements = measurements_for(
+        truth, args.measurement_photons, Path(args.work),
+        "single_cloud" if args.truth is None else Path(args.truth).stem,
+    )
     synth_s = time.perf_counter() - t0
     carving_s = None
     if args.start is None:

@@ -59,7 +59,8 @@ class RetrievalConfig:
     of 1 /km halved whenever the loss saturates. The seed paper's step of 2 /km with
     coarse-to-fine stages 4, 2, 1 walks away from that start. The L1 prior (``sparsity``,
     :meth:`Retrieval.l1_gradient`) is off by default: it changes what is estimated, and its
-    weight has been measured on that cloud only (0.01 /km^2 lowered epsilon there).
+    weight was measured on that cloud (0.01 /km^2 lowered epsilon there) and checked on one
+    more (benchmarks/two_cumuli.py: the same gain).
 
     ``optimizer="lbfgsb"`` makes every iteration a window of L-BFGS-B on the sample-average
     loss of fixed paths (:mod:`cloudct.retrieval.sample_average`): up to ``period``
@@ -425,14 +426,15 @@ class Retrieval:
         def residual(images: xr.Dataset) -> np.ndarray:
             return image_loss(images["radiance"].values, measured, w)[1]
 
+        medium = self.medium()
         ev = self._recycler.evaluate(
-            self.medium(), residual=residual if config.recycle_gradient else None
+            medium, residual=residual if config.recycle_gradient else None
         )
         loss = image_loss(ev.images["radiance"].values, measured, w)[0]
         gradient = ev.gradient
         if not config.recycle_gradient:
             gradient = score_function_gradient(
-                self.medium(), Scene.from_dataset(data), residual(ev.images),
+                medium, Scene.from_dataset(data), residual(ev.images),
                 photons=gradient_photons, seed=2 * self._seed(s.iteration) + 1,
                 backend=self.backend, client=self.client,
             )[0]
