@@ -47,7 +47,7 @@ from cloudct.medium import load_medium  # noqa: E402
 from cloudct.retrieval.carving import PROFILES, carve, initial_medium  # noqa: E402
 from cloudct.retrieval.cli import add_run_options, config_from_options  # noqa: E402
 from cloudct.retrieval.loop import Retrieval, coarse_measurements  # noqa: E402
-from cloudct.retrieval.loss import pixel_weights  # noqa: E402
+from cloudct.retrieval.loss import cross_loss, pixel_weights  # noqa: E402
 from data_synth.measurements import (  # noqa: E402
     load_measurements,
     save_measurements,
@@ -90,14 +90,14 @@ def fresh_loss(run: Retrieval, photons: int) -> dict:
     and A's squared residual (what a fresh iteration logs) for comparison."""
     data = coarse_measurements(run.measurements, run.config.stages[run.state.stage])
     w = pixel_weights(data)
-    m = np.nan_to_num(data["radiance"].values)
+    m = data["radiance"].values
     a, b = (
         render(run.medium(), Scene.from_dataset(data), photons=photons, seed=10**9 + k)
-        ["radiance"].values - m
+        ["radiance"].values
         for k in (1, 2)
     )
-    return {"photons": photons, "loss": 0.5 * float(np.sum(w * a * b)),
-            "squared_residual": 0.5 * float(np.sum(w * a * a))}
+    return {"photons": photons, "loss": cross_loss(a, b, m, w),
+            "squared_residual": cross_loss(a, a, m, w)}
 
 
 def main() -> None:

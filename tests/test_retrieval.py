@@ -343,15 +343,10 @@ def test_recycling_memory_chooses_how_the_paths_are_stored(measurements):
         run.run(progress=False)
         return run, run._recycler.image_store
 
-    def crossings_bytes(store):  # the store without its camera connections
-        return store.nbytes - sum(
-            a.nbytes for name, a in store.arrays._asdict().items()
-            if name.startswith("connection_")
-        )
-
     run, store = stores(1.0)
     assert store.storage == run._recycler.gradient_store.storage == "connections"
-    crossings = crossings_bytes(store) + crossings_bytes(run._recycler.gradient_store)
+    both = (store, run._recycler.gradient_store)
+    crossings = sum(s.nbytes - s.connection_nbytes for s in both)  # without connections
     small, store = stores((crossings + run._recycler.nbytes) / 2 / 2**30)  # halfway
     assert store.storage == small._recycler.gradient_store.storage == "crossings"
     assert run.id == small.id == Retrieval(measurements, initial_guess(),

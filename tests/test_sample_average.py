@@ -48,10 +48,7 @@ def test_gradient_is_the_derivative_of_the_sample_average_loss(problem):
     # between what they take with and without camera connections, A (2/3 of the paths)
     # cannot keep its connections
     assert [store.storage for store in loss.stores] == ["connections", "connections"]
-    connections = sum(
-        a.nbytes for store in loss.stores for name, a in store.arrays._asdict().items()
-        if name.startswith("connection_")
-    )
+    connections = sum(store.connection_nbytes for store in loss.stores)
     budget = sum(store.nbytes for store in loss.stores) - connections / 2
     small = SampleAverageLoss(guess, measured, mask, photons=20_000, photons_b=10_000, seed=3,
                               memory_budget=budget)

@@ -164,6 +164,12 @@ class PathStore:
         return int(sum(a.nbytes for a in self.arrays) + self.photon.nbytes)
 
     @property
+    def connection_nbytes(self) -> int:
+        """Memory held by the camera connections (0 unless "connections" storage)."""
+        return int(sum(a.nbytes for name, a in self.arrays._asdict().items()
+                       if name.startswith("connection_")))
+
+    @property
     def bytes_per_event(self) -> float:
         """Store bytes per stored scattering (or ground) event."""
         return self.nbytes / max(self.events, 1)

@@ -76,6 +76,16 @@ def image_loss(
     return 0.5 * float(np.sum(residual * difference)), residual
 
 
+def cross_loss(
+    image_a: np.ndarray, image_b: np.ndarray, measured: np.ndarray, weights: np.ndarray
+) -> float:
+    """1/2 sum_d w_d (I_A,d - m_d) (I_B,d - m_d): Eq. (41) from two independent image
+    estimates A and B, unbiased where the squared residual of one adds its variance. NaN
+    measured pixels count as 0 (give them weight 0)."""
+    measured = np.nan_to_num(measured)
+    return 0.5 * float(np.sum(weights * (image_a - measured) * (image_b - measured)))
+
+
 def loss_and_gradient(
     medium: xr.Dataset,
     measurements: xr.Dataset,

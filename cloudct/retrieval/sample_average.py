@@ -34,7 +34,7 @@ from scipy.optimize import minimize
 from cloudct.mc.scene import Scene
 from cloudct.recycling.replay import replay_gradient, replay_images
 from cloudct.recycling.store import PathStore, record_paths
-from cloudct.retrieval.loss import image_loss, pixel_weights
+from cloudct.retrieval.loss import cross_loss, image_loss, pixel_weights
 
 
 @dataclass
@@ -103,7 +103,7 @@ class SampleAverageLoss:
             self.reference_loss = image_loss(image_a, self.measured, self.weights)[0]
         residual_a = self.weights * (image_a - self.measured)
         residual_b = self.weights * (image_b - self.measured)
-        value = 0.5 * float(np.sum(residual_a * (image_b - self.measured)))
+        value = cross_loss(image_a, image_b, self.measured, self.weights)
         self.values.append(value)
         gradient = 0.5 * (
             replay_gradient(self.stores[0], medium, residual_b, backend=self.backend)[0]
