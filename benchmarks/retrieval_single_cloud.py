@@ -2,7 +2,7 @@
 
 Scene: the bundled RICO cloud 32x37x26 (the ``cloudct render`` default: Mie extinction at
 0.672 micron, air, open boundaries), or another medium given with ``--truth`` (e.g.
-``benchmarks/two_cumuli.py``'s), sun at zenith, the nine 76x76 cameras. Noise-free
+``benchmarks/scenes.py``'s), sun at zenith, the nine 76x76 cameras. Noise-free
 measurements are rendered with ``--measurement-photons`` (cached in ``--work``), the
 initial medium is the space-carved hull filled in the excess profile (``--profile
 constant``: the seed paper's constant) at the fitted mean extinction
@@ -66,6 +66,16 @@ def measurements_for(truth, photons: int, work: Path, name: str = "single_cloud"
     return measurements
 
 
+def truth_and_measurements(truth_file: str | None, photons: int, work: Path):
+    """The true medium (``truth_file``, default the bundled single cloud) and its cached
+    noise-free measurements (:func:`measurements_for`, named after the file)."""
+    if truth_file is None:
+        truth, name = single_cloud_medium(), "single_cloud"
+    else:
+        truth, name = load_medium(truth_file), Path(truth_file).stem
+    return truth, measurements_for(truth, photons, work, name)
+
+
 def at_marks(log: dict, marks_s: list[float]) -> dict:
     """epsilon, delta and loss of the last iteration finished by each time mark."""
     seconds = np.asarray(log["seconds"])
@@ -84,15 +94,15 @@ def at_marks(log: dict, marks_s: list[float]) -> dict:
     return out
 
 
-def fresh_loss(run: Retrieval, photons: int) -> dict:
-    """The current medium's loss at the run's current stage from two independent fresh
-    renders A and B (paths no iteration used): the unbiased 1/2 sum w (I_A - m)(I_B - m),
-    and A's squared residual (what a fresh iteration logs) for comparison."""
-    data = coarse_measurements(run.measurements, run.config.stages[run.state.stage])
+def fresh_loss(medium: xr.Dataset, data: xr.Dataset, photons: int, seed: int = 10**9) -> dict:
+    """The loss of ``medium`` against the measurements ``data`` from two independent fresh
+    renders A and B (seeds ``seed`` + 1 and + 2; paths no iteration used): the unbiased
+    1/2 sum w (I_A - m)(I_B - m), and A's squared residual (what a fresh iteration logs)
+    for comparison."""
     w = pixel_weights(data)
     m = data["radiance"].values
     a, b = (
-        render(run.medium(), Scene.from_dataset(data), photons=photons, seed=10**9 + k)
+        render(medium, Scene.from_dataset(data), photons=photons, seed=seed + k)
         ["radiance"].values
         for k in (1, 2)
     )
@@ -118,7 +128,7 @@ def main() -> None:
                         help="shape of the carved start's extinction (cloudct.retrieval."
                              "carving.carve); the runs before 2026-11-22 05:00 used 'constant'")
     parser.add_argument("--truth", default=None,
-                        help="the true medium (netCDF, e.g. from benchmarks/two_cumuli.py; "
+                        help="the true medium (netCDF, e.g. from benchmarks/scenes.py; "
                              "default: the bundled single cloud), seen by the nine cameras "
                              "around its box")
     parser.add_argument("--start", default=None,
@@ -128,11 +138,9 @@ def main() -> None:
     if args.time_limit is not None:
         parser.error("the run's length is --minutes")
 
-    truth = single_cloud_medium() if args.truth is None else load_medium(args.truth)
     t0 = time.perf_counter()
-    measurements = measurements_for(
-        truth, args.measurement_photons, Path(args.work),
-        "single_cloud" if args.truth is None else Path(args.truth).stem,
+    truth, measurements = truth_and_measurements(
+        args.truth, args.measurement_photons, Path(args.work)
     )
     synth_s = time.perf_counter() - t0
     carving_s = None
@@ -168,7 +176,8 @@ def main() -> None:
         Path(args.medium_output).parent.mkdir(parents=True, exist_ok=True)
         retrieved.to_netcdf(args.medium_output)
     if args.final_loss_photons > 0:
-        result["final_loss_fresh"] = fresh_loss(run, args.final_loss_photons)
+        stage_data = coarse_measurements(measurements, run.config.stages[run.state.stage])
+        result["final_loss_fresh"] = fresh_loss(run.medium(), stage_data, args.final_loss_photons)
     log = {k: [float(x) for x in v] for k, v in run.state.log.items()}
     result["log"] = log
     result["iterations"] = run.state.iteration

@@ -60,7 +60,7 @@ class RetrievalConfig:
     coarse-to-fine stages 4, 2, 1 walks away from that start. The L1 prior (``sparsity``,
     :meth:`Retrieval.l1_gradient`) is off by default: it changes what is estimated, and its
     weight was measured on that cloud (0.01 /km^2 lowered epsilon there) and checked on one
-    more (benchmarks/two_cumuli.py: the same gain).
+    more (benchmarks/scenes.py two_cumuli: the same gain).
 
     ``optimizer="lbfgsb"`` makes every iteration a window of L-BFGS-B on the sample-average
     loss of fixed paths (:mod:`cloudct.retrieval.sample_average`): up to ``period``
