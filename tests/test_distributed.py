@@ -222,6 +222,24 @@ def test_a_task_that_keeps_killing_workers_fails_the_call_clearly(client):
     client.wait_for_workers(2)
 
 
+def _wait_a_moment():
+    import time
+
+    time.sleep(2.0)  # long enough to be cancelled first, short enough not to hold the worker
+
+
+def test_a_cancelled_task_fails_the_call_clearly(client):
+    """A worker that dies can take the call's scattered inputs with it; the scheduler then
+    cancels the tasks that need them (a race with the retries of the test above). The call
+    fails with the same DistributedError as when workers keep dying, not with Dask's
+    cancellation."""
+    ex = DaskExecutor(client)
+    future = ex.submit(_wait_a_moment, key="cloudct-test-cancelled")
+    client.cancel([future])
+    with pytest.raises(DistributedError, match="cancelled a task of this call"):
+        ex.gather([future])
+
+
 CUDASIM_SCRIPT = """
 import json
 import numpy as np

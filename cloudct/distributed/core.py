@@ -305,9 +305,12 @@ class DaskExecutor:
     def gather(self, futures: list, progress_total: int = 0, progress_of=None,
                progress: bool | None = False, unit: str = "photon", desc: str = "") -> list:
         """Results of ``futures`` in their order, with a progress bar as they complete.
-        Raises :class:`DistributedError` when workers died too often, and re-raises the
-        error of a task that failed; cancels the other tasks then."""
+        Raises :class:`DistributedError` when workers died too often or a task was
+        cancelled (a dying worker can take the call's scattered inputs with it, and the
+        scheduler then cancels the tasks that need them), and re-raises the error of a task
+        that failed; cancels the other tasks then."""
         distributed = _import_distributed()
+        from distributed.client import FutureCancelledError
         from tqdm.auto import tqdm
 
         disable = None if progress is None else not progress
@@ -325,6 +328,12 @@ class DaskExecutor:
                 f"a Dask worker died while running {task!r} (more often than "
                 "distributed.scheduler.allowed-failures allows); the call was abandoned and "
                 "no partial result is returned"
+            ) from err
+        except FutureCancelledError as err:
+            raise DistributedError(
+                f"the Dask scheduler cancelled a task of this call ({err}); when a worker "
+                "dies, the data scattered to it can be lost with it. The call was abandoned "
+                "and no partial result is returned"
             ) from err
         finally:
             self.client.cancel([f for f in futures if not f.done()])
