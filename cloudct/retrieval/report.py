@@ -34,7 +34,7 @@ def write_report(
     plt = _plt()
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
-    lines = [f"# cloudct retrieval report: {result.attrs.get('title', '')}", ""]
+    lines = ["# cloudct retrieval report", ""]
     config = json.loads(result.attrs.get("config", "{}"))
     lines += [
         f"- run id: `{result.attrs.get('run_id', '?')}`",
@@ -78,7 +78,7 @@ def write_report(
             fig.savefig(out / "epsilon_delta.png", dpi=110)
             plt.close(fig)
             lines += ["![epsilon and delta](epsilon_delta.png)", ""]
-        _slices(plt, true_beta, beta, out / "slices.png")
+        _slices(plt, true_beta, beta, result["z"].values, out / "slices.png")
         fig, ax = plt.subplots(figsize=(4.2, 4))
         cloudy = (true_beta > 0) | (beta > 0)
         ax.scatter(true_beta[cloudy], beta[cloudy], s=3, alpha=0.4)
@@ -109,17 +109,22 @@ def write_report(
     return summary
 
 
-def _slices(plt, truth: np.ndarray, beta: np.ndarray, path: Path) -> None:
-    ks = np.unique(np.linspace(0, truth.shape[2] - 1, 4).round().astype(int))
+def _slices(plt, truth: np.ndarray, beta: np.ndarray, z: np.ndarray, path: Path) -> None:
+    """Horizontal slices of the true and retrieved extinction at four heights from the true
+    cloud's base to its top, on one colour scale."""
+    cloudy = np.nonzero((truth > 0).any(axis=(0, 1)))[0]
+    low, high = (cloudy[0], cloudy[-1]) if cloudy.size else (0, truth.shape[2] - 1)
+    ks = np.unique(np.linspace(low, high, 4).round().astype(int))
     top = max(truth.max(), beta.max())
-    fig, axes = plt.subplots(2, len(ks), figsize=(2.6 * len(ks), 5.2), squeeze=False)
+    fig, axes = plt.subplots(2, len(ks), figsize=(2.6 * len(ks) + 1.0, 5.2), squeeze=False,
+                             layout="constrained")
     for col, k in enumerate(ks):
         for row, (data, name) in enumerate(((truth, "true"), (beta, "retrieved"))):
             ax = axes[row, col]
-            ax.imshow(data[:, :, k].T, origin="lower", vmin=0, vmax=top, cmap="viridis")
-            ax.set_title(f"{name}, z index {k}", fontsize=8)
+            im = ax.imshow(data[:, :, k].T, origin="lower", vmin=0, vmax=top, cmap="viridis")
+            ax.set_title(f"{name}, z = {z[k]:.2f} km", fontsize=8)
             ax.axis("off")
-    fig.tight_layout()
+    fig.colorbar(im, ax=axes, shrink=0.8, label="cloud extinction [1/km]")
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
