@@ -118,8 +118,7 @@ def _cli_demo(args: argparse.Namespace) -> int:
     result = run.run(checkpoint=out / "checkpoint.nc", progress=None)
     result.to_netcdf(out / "result.nc")
     print("4/4 report ...")
-    summary = write_report(result, out / "report", truth=truth, measurements=measurements,
-                           render_photons=args.photons * 4)
+    summary = write_report(result, out / "report", truth=truth, measurements=measurements)
     eps = float(result["log_epsilon"].values[-1])
     delta = float(result["log_delta"].values[-1])
     print(f"done in {time.perf_counter() - start:.0f} s: epsilon {eps:.1%}, delta {delta:+.1%}; "

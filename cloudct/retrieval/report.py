@@ -102,7 +102,8 @@ def write_report(
             np.abs(measurements["radiance"].values).sum()
         )
         lines += ["## Re-rendered vs measured images", "",
-                  f"Relative L1 image difference: {rel:.1%} ({render_photons} photons).", "",
+                  f"Relative L1 image difference: {rel:.1%} (re-rendered with {render_photons} "
+                  "photons; their Monte Carlo noise is part of it).", "",
                   "![images](images.png)", ""]
     summary = out / "summary.md"
     summary.write_text("\n".join(lines))
@@ -131,7 +132,7 @@ def _slices(plt, truth: np.ndarray, beta: np.ndarray, z: np.ndarray, path: Path)
 
 def _images(plt, measured: np.ndarray, rendered: np.ndarray, path: Path) -> None:
     nv = measured.shape[0]
-    vmax = max(measured.max(), rendered.max())
+    vmax = np.nanmax(measured)  # one grey scale, the measurements'; brighter noise saturates
     fig, axes = plt.subplots(2, nv, figsize=(1.9 * nv, 4.0), squeeze=False)
     for v in range(nv):
         for row, (data, name) in enumerate(((measured, "measured"), (rendered, "retrieved"))):
