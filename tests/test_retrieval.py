@@ -17,6 +17,7 @@ from cloudct.retrieval.optimizers import (
     project,
     smoothed_gradient,
 )
+from cloudct.retrieval.report import write_report
 
 
 def test_adam_follows_its_formula():
@@ -493,3 +494,10 @@ def test_cli_report_writes_figures_and_the_error_split(tmp_path, measurements):
     assert f"| {eps:.1%} | {delta:+.1%} |" in summary
     assert f"| {split['outside']:.1%} | {split['inside']:.1%} | {split['cloud_mass']:.1%} |" \
         in summary
+    # a masked (NaN) pixel is left out of the image difference, not turned into a NaN
+    masked = measurements.copy(deep=True)
+    masked["radiance"][0, 0, 0] = np.nan
+    summary = write_report(result, tmp_path / "masked", measurements=masked,
+                           render_photons=2000).read_text()
+    difference = summary.split("Relative L1 image difference: ")[1].split("%")[0]
+    assert np.isfinite(float(difference)), difference

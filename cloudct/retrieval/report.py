@@ -96,10 +96,10 @@ def write_report(
 
         images = render(result, Scene.from_dataset(measurements), photons=render_photons,
                         progress=False)
-        _images(plt, measurements["radiance"].values, images["radiance"].values,
-                out / "images.png")
-        rel = np.abs(images["radiance"].values - measurements["radiance"].values).sum() / (
-            np.abs(measurements["radiance"].values).sum()
+        measured = measurements["radiance"].values  # NaN pixels (masked) are left out
+        _images(plt, measured, images["radiance"].values, out / "images.png")
+        rel = np.nansum(np.abs(images["radiance"].values - measured)) / np.nansum(
+            np.abs(measured)
         )
         lines += ["## Re-rendered vs measured images", "",
                   f"Relative L1 image difference: {rel:.1%} (re-rendered with {render_photons} "
