@@ -94,13 +94,11 @@ def write_report(
         from cloudct.mc.render import render
         from cloudct.mc.scene import Scene
 
-        images = render(result, Scene.from_dataset(measurements), photons=render_photons,
-                        progress=False)
+        rendered = render(result, Scene.from_dataset(measurements), photons=render_photons,
+                          progress=False)["radiance"].values
         measured = measurements["radiance"].values  # NaN pixels (masked) are left out
-        _images(plt, measured, images["radiance"].values, out / "images.png")
-        rel = np.nansum(np.abs(images["radiance"].values - measured)) / np.nansum(
-            np.abs(measured)
-        )
+        _images(plt, measured, rendered, out / "images.png")
+        rel = np.nansum(np.abs(rendered - measured)) / np.nansum(np.abs(measured))
         lines += ["## Re-rendered vs measured images", "",
                   f"Relative L1 image difference: {rel:.1%} (re-rendered with {render_photons} "
                   "photons; their Monte Carlo noise is part of it).", "",
