@@ -77,7 +77,8 @@ def truth_and_measurements(truth_file: str | None, photons: int, work: Path):
 
 
 def at_marks(log: dict, marks_s: list[float]) -> dict:
-    """epsilon, delta and loss of the last iteration finished by each time mark."""
+    """epsilon, delta and loss of the last iteration finished by each time mark (and the
+    epsilon and delta of the iterate average, where the run averages)."""
     seconds = np.asarray(log["seconds"])
     out = {}
     for mark in marks_s:
@@ -90,6 +91,8 @@ def at_marks(log: dict, marks_s: list[float]) -> dict:
         out[key] = {
             "iteration": i + 1, "seconds": float(seconds[i]), "epsilon": log["epsilon"][i],
             "delta": log["delta"][i], "loss": log["loss"][i],
+            "epsilon_average": log["epsilon_average"][i],
+            "delta_average": log["delta_average"][i],
         }
     return out
 

@@ -105,12 +105,22 @@ for tpb in (1, 32):
         case["events"] = [runs[0][2]["events"], runs[1][2]["events"]]
         out[f"gradient/sort{int(sort)}/tpb{tpb}"] = case
 
-from cloudct.mc.drt import drt_gradient
+from cloudct.mc.gradient import drt_gradient, sample_matching_gradient
+camera_side = {
+    "drt": (drt_gradient, {}),
+    "drt-residual": (drt_gradient, {"pixel_sampling": "residual"}),
+    "sm": (sample_matching_gradient, {"probes": 2}),
+    "sm-quadratic": (sample_matching_gradient, {"quadratic": True}),
+    "sm-dual-suffix": (sample_matching_gradient, {"mis": False}),
+    "sm-residual": (sample_matching_gradient, {"pixel_sampling": "residual"}),
+}
 for tpb in (1, 32):
     ck.THREADS_PER_BLOCK = tpb
-    runs = [drt_gradient(medium, scenes["open"], residual, samples_per_pixel=4, batches=4,
-                         backend=b) for b in ("cpu", "cuda")]
-    out[f"drt/tpb{tpb}"] = compare(runs[0][0], runs[1][0])
+    for name, (estimate, kw) in camera_side.items():
+        runs = [estimate(medium, scenes["open"], residual, samples_per_pixel=4, batches=4,
+                         backend=b, **kw) for b in ("cpu", "cuda")]
+        out[f"{name}/tpb{tpb}"] = compare(runs[0][0], runs[1][0])
+        out[f"{name}/tpb{tpb}"]["events"] = [runs[0][2]["events"], runs[1][2]["events"]]
 
 # per photon: the RESIDUAL pass kernel against trace_photon called on the CPU
 k = kernel_inputs(medium, scenes["open"])
@@ -223,6 +233,7 @@ CC = (9, 0)
 assert hasattr(dispatcher, "get_current_device"), "numba-cuda internals changed"
 dispatcher.get_current_device = lambda: SimpleNamespace(compute_capability=CC)
 import cloudct.mc.cuda_kernels as ck
+from cloudct.mc.pixel_sampling import residual_table
 from cloudct.mc.render import kernel_inputs
 
 k = kernel_inputs(medium, scenes["open"])
@@ -238,7 +249,8 @@ cases = {
     "forward_gradient_kernel": (scene, *scalars, 0, 2, (residual, gradients, path_sum,
                                                         vertices, d)),
     "backward_kernel": (scene, *scalars, 0, 2, (images, events)),
-    "drt_kernel": (scene, *scalars, 0, 2, (residual, gradients, events)),
+    "camera_gradient_kernel": (scene, *scalars, 0, 2, 1, 2, False, True,
+                               (residual, residual_table(residual + 1.0), gradients, events)),
 }
 kernels = dict.fromkeys(cases, ck)
 
@@ -400,7 +412,7 @@ def test_kernels_compile_for_a_gpu():
     for name, info in result.items():
         assert info["ptxas_rc"] == 0, f"{name}: ptxas failed: {info['ptxas']}"
     for name in ("forward_render_kernel", "forward_gradient_kernel", "backward_kernel",
-                 "drt_kernel", "replay_render_kernel", "replay_gradient_kernel"):
+                 "camera_gradient_kernel", "replay_render_kernel", "replay_gradient_kernel"):
         assert "atom.global.add.f64" in result[name]["atomics"], result[name]
     assert "atom.global.add.f64" not in result["forward_residual_kernel"]["atomics"]
     assert not result["log_ratio_kernel"]["atomics"]
@@ -438,14 +450,20 @@ def test_sort_by_path_length_is_stable():
     assert np.all(np.diff(lengths[order]) >= 0)
 
 
-@pytest.mark.parametrize("key", ["drt/tpb1", "drt/tpb32"])
-def test_drt_kernel_matches_cpu_to_rounding(simulated, key):
-    """The DRT kernel: the same samples as the CPU (same streams), summed in another order
-    (threads run pixel-major, the CPU sample-major per pixel): equal to float64 rounding."""
+@pytest.mark.parametrize("estimator", ["drt", "drt-residual", "sm", "sm-quadratic",
+                                       "sm-dual-suffix", "sm-residual"])
+@pytest.mark.parametrize("tpb", [1, 32])
+def test_camera_gradient_kernel_matches_cpu_to_rounding(simulated, estimator, tpb):
+    """The camera-side gradient kernel (DRT, sample matching; every pixel, or pixels drawn
+    from the residual's alias table): the same samples as the CPU (same streams), summed in
+    another order (threads run pixel-major, the CPU sample-major per pixel): equal to
+    float64 rounding, with the same path vertices."""
+    key = f"{estimator}/tpb{tpb}"
     case = simulated[key]
     cpu, gpu = np.array(case["cpu"]), np.array(case["gpu"])
     assert case["scale"] > 0.0
     np.testing.assert_allclose(gpu, cpu, rtol=1e-12, atol=1e-12 * case["scale"], err_msg=key)
+    assert case["events"][0] == case["events"][1] > 0
 
 
 # --------------------------------------------------------------------------------------

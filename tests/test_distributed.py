@@ -95,7 +95,8 @@ def test_gradients_loss_and_retrieval_equal_the_single_process_ones_bitwise(clie
     assert a.loss == b.loss and same(a.gradient, b.gradient)
     assert same(a.gradient_std_error, b.gradient_std_error)
 
-    config = RetrievalConfig(iterations=2, photons=8_000, stages=(1,), stage_photons=(1.0,))
+    config = RetrievalConfig(iterations=2, photons=8_000, stages=(1,), stage_photons=(1.0,),
+                             estimator=("score",))  # the estimator workers trace
     one = Retrieval(measured, guess, config)
     one.run(progress=False)
     many = Retrieval(measured, guess, config, client=client)

@@ -25,7 +25,8 @@ from mcstats import assert_consistent
 from numba import njit
 
 from cloudct.mc.cameras import Camera
-from cloudct.mc.drt import drt_gradient, sample_transmittance
+from cloudct.mc.drt import sample_transmittance
+from cloudct.mc.gradient import drt_gradient
 from cloudct.mc.random import stream_start
 from cloudct.mc.render import render_batches
 from cloudct.mc.scene import Scene
@@ -111,8 +112,9 @@ def finite_difference(medium, voxel, base, seed):
     return per_batch.mean(), per_batch.std(ddof=1) / math.sqrt(BATCHES)
 
 
-@pytest.fixture(scope="module")
-def finite_differences():
+def finite_differences_of_compared_voxels() -> dict:
+    """The finite differences of every compared voxel (the ``finite_differences`` fixture
+    of conftest.py, shared with the sample-matching tests)."""
     medium = drt_medium()
     seed = 21
     base = weighted_batches(medium, seed)
@@ -129,7 +131,7 @@ def drt():
 
 
 def compare(voxels, drt, finite_differences, label):
-    mean, se = drt
+    mean, se = drt[:2]
     fd = np.array([finite_differences[v] for v in voxels])
     est = np.array([mean[v] for v in voxels])
     est_se = np.array([se[v] for v in voxels])
@@ -137,7 +139,7 @@ def compare(voxels, drt, finite_differences, label):
         est, est_se, fd[:, 0], BATCHES, reference_error=fd[:, 1], label=label
     )
     for v, e, s, (f, fs) in zip(voxels, est, est_se, fd, strict=True):
-        print(f"{label} {v}: DRT {e:+.5f} +- {s:.5f}, FD {f:+.5f} +- {fs:.5f}, "
+        print(f"{label} {v}: estimate {e:+.5f} +- {s:.5f}, FD {f:+.5f} +- {fs:.5f}, "
               f"z = {(e - f) / math.hypot(s, fs):+.2f}")
     print(label, stats)
     return stats
@@ -289,12 +291,12 @@ def test_transmittance_sampling_follows_transmittance(p, u, periodic):
 def test_drt_gradient_is_linear_in_the_residual_and_checks_its_shape():
     medium, scene = drt_medium(), drt_scene(periodic=True, ground=None)
     r = pixel_weights()
-    g1, s1 = drt_gradient(medium, scene, r, samples_per_pixel=64, seed=2, batches=4)
-    g2, s2 = drt_gradient(medium, scene, 2.0 * r, samples_per_pixel=64, seed=2, batches=4)
+    g1, s1, _ = drt_gradient(medium, scene, r, samples_per_pixel=64, seed=2, batches=4)
+    g2, s2, _ = drt_gradient(medium, scene, 2.0 * r, samples_per_pixel=64, seed=2, batches=4)
     assert np.any(g1 != 0.0)
     np.testing.assert_array_equal(g2, 2.0 * g1)
     np.testing.assert_array_equal(s2, 2.0 * s1)
-    g0, s0 = drt_gradient(medium, scene, np.zeros_like(r), samples_per_pixel=8, batches=2)
+    g0, s0, _ = drt_gradient(medium, scene, np.zeros_like(r), samples_per_pixel=8, batches=2)
     assert not g0.any() and not s0.any()
     with pytest.raises(ValueError, match="residual"):
         drt_gradient(medium, scene, r[:1], samples_per_pixel=8, batches=2)

@@ -8,7 +8,13 @@ import pytest
 from test_score_gradient import gradient_medium, gradient_scene
 
 from cloudct.mc.render import render
-from cloudct.retrieval.loop import Retrieval, RetrievalConfig, coarse_measurements
+from cloudct.retrieval.loop import (
+    LOG_FIELDS,
+    Retrieval,
+    RetrievalConfig,
+    coarse_measurements,
+    run_id,
+)
 from cloudct.retrieval.metrics import epsilon_delta, epsilon_split
 from cloudct.retrieval.optimizers import (
     Adam,
@@ -192,8 +198,9 @@ def test_step_decays_when_the_loss_saturates_at_the_last_stage(tmp_path, measure
     s.log["stage"] += [0.0] * 4
     run._advance_stage_if_saturated()
     assert s.step_scale == 0.5
-    for key in ("epsilon", "delta", "seconds", "photons", "resampled", "ess"):
-        s.log[key] = [0.0] * 8
+    for key in LOG_FIELDS:
+        if key not in ("loss", "stage"):
+            s.log[key] = [0.0] * 8
     run.save_checkpoint(tmp_path / "ck.nc")
     resumed = Retrieval.resume(tmp_path / "ck.nc", measurements, initial_guess())
     assert (resumed.state.step_scale, resumed.state.decayed_at) == (0.5, 4)
@@ -501,3 +508,122 @@ def test_cli_report_writes_figures_and_the_error_split(tmp_path, measurements):
                            render_photons=2000).read_text()
     difference = summary.split("Relative L1 image difference: ")[1].split("%")[0]
     assert np.isfinite(float(difference)), difference
+
+
+# ----------------------------------------------------------------------------------------
+# The gradient estimator of each stage, and iterate averaging
+# ----------------------------------------------------------------------------------------
+
+
+def test_estimator_settings_are_checked_and_fingerprinted_only_where_they_act(measurements):
+    default = RetrievalConfig()
+    assert default.estimator == ("sm",) and default.pixel_sampling == "residual"
+    # where stored forward paths are replayed, the score function
+    assert RetrievalConfig(recycling="fixed").estimator == ("score",)
+    assert RetrievalConfig(optimizer="lbfgsb", stages=(4, 2)).estimator == ("score", "score")
+    assert RetrievalConfig(estimator=("score",)).pixel_sampling == "uniform"
+    score = RetrievalConfig(estimator=("score",))
+    assert run_id(measurements, score) == run_id(  # checkpoints of earlier runs resume
+        measurements, RetrievalConfig(estimator=("score",), pixel_sampling="uniform"))
+    assert run_id(measurements, score) != run_id(measurements, default)
+    assert run_id(measurements, RetrievalConfig(averaging="ema")) == run_id(
+        measurements, default)  # the average does not change the iterates
+    with pytest.raises(ValueError, match="estimator must be one of"):
+        RetrievalConfig(estimator=("mis",))
+    with pytest.raises(ValueError, match="same, non-zero length"):
+        RetrievalConfig(stages=(2, 1), estimator=("sm",))
+    with pytest.raises(ValueError, match="camera-side"):
+        RetrievalConfig(estimator=("score",), pixel_sampling="residual")
+    with pytest.raises(ValueError, match="pixel_sampling must be one of"):
+        RetrievalConfig(estimator=("drt",), pixel_sampling="bright")
+    with pytest.raises(ValueError, match="replay stored forward paths"):
+        RetrievalConfig(estimator=("sm",), recycling="adaptive")
+    with pytest.raises(ValueError, match="replay stored forward paths"):
+        RetrievalConfig(estimator=("drt",), optimizer="lbfgsb")
+    RetrievalConfig(estimator=("sm",), recycling="adaptive", recycle_gradient=False)
+    with pytest.raises(ValueError, match="averaging must be one of"):
+        RetrievalConfig(averaging="median")
+    with pytest.raises(ValueError, match="averaging_decay"):
+        RetrievalConfig(averaging="ema", averaging_decay=1.0)
+    with pytest.raises(ValueError, match="use the estimator 'score' with a client"):
+        Retrieval(measurements, initial_guess(), RetrievalConfig(estimator=("sm",)),
+                  client="tcp://127.0.0.1:1")
+
+
+@pytest.mark.parametrize("estimator, sampling", [(("drt", "sm"), "residual"),
+                                                 (("sm", "sm"), "uniform")])
+def test_tiny_retrieval_with_camera_side_gradients(measurements, estimator, sampling):
+    truth = gradient_medium()
+    config = RetrievalConfig(iterations=30, **{**CONFIG, "photons": 20_000},
+                             estimator=estimator, pixel_sampling=sampling)
+    run = Retrieval(measurements, initial_guess(), config, truth=truth)
+    result = run.run(progress=False)
+    eps0, _ = epsilon_delta(truth["cloud_extinction"].values,
+                            initial_guess()["cloud_extinction"].values)
+    eps = result["log_epsilon"].values
+    assert eps[-5:].mean() < 0.6 * eps0, (eps0, eps)
+    seconds = result["log_gradient_seconds"].values
+    assert np.all(np.isfinite(seconds)) and np.all(seconds > 0)
+
+
+def test_iterate_averages_and_their_restarts(measurements):
+    """The uniform average is the mean of the iterates since the last stage change; the
+    moving average is the decay-weighted mean (Adam's bias correction), the first iterate
+    itself after a restart."""
+    truth = gradient_medium()
+    settings = dict(CONFIG, photons=5_000)
+    runs = {kind: Retrieval(measurements, initial_guess(),
+                            RetrievalConfig(iterations=0, averaging=kind, **settings),
+                            truth=truth) for kind in ("uniform", "ema")}
+    iterates = []
+    for _ in range(4):
+        for run in runs.values():
+            run.step()
+        np.testing.assert_array_equal(runs["uniform"].state.extinction,
+                                      runs["ema"].state.extinction)
+        iterates.append(runs["uniform"].state.extinction.copy())
+    np.testing.assert_allclose(runs["uniform"].average(), np.mean(iterates, axis=0),
+                               rtol=1e-12)
+    weights = 0.9 ** np.arange(3, -1, -1)
+    np.testing.assert_allclose(
+        runs["ema"].average(), np.tensordot(weights, iterates, axes=1) / weights.sum(),
+        rtol=1e-12,
+    )
+    eps, delta = epsilon_delta(truth["cloud_extinction"].values, runs["ema"].average())
+    assert runs["ema"].state.log["epsilon_average"][-1] == eps
+    assert runs["ema"].state.log["delta_average"][-1] == delta
+    result = runs["ema"].result()
+    np.testing.assert_array_equal(result["cloud_extinction_average"].values,
+                                  runs["ema"].average())
+    np.testing.assert_array_equal(result["cloud_extinction"].values, iterates[-1])
+    # a new stage restarts the average at its first iterate
+    run = runs["uniform"]
+    stage = run.state.stage
+
+    def next_stage() -> None:
+        run.state.stage += 1
+
+    run._advance_stage_if_saturated = next_stage  # the loss saturates
+    run.step()
+    assert run.state.stage == stage + 1 and run.average() is None
+    run._advance_stage_if_saturated = lambda: None
+    run.step()
+    np.testing.assert_array_equal(run.average(), run.state.extinction)
+    # without averaging: no average, NaN in the log
+    plain = Retrieval(measurements, initial_guess(), RetrievalConfig(iterations=1, **settings),
+                      truth=truth)
+    out = plain.run(progress=False)
+    assert "cloud_extinction_average" not in out
+    assert np.isnan(out["log_epsilon_average"].values).all()
+
+
+def test_checkpoint_resume_with_averaging_continues_exactly(tmp_path, measurements):
+    settings = dict(CONFIG, photons=5_000, averaging="ema")
+    straight = Retrieval(measurements, initial_guess(), RetrievalConfig(iterations=5, **settings))
+    straight.run(progress=False)
+    first = Retrieval(measurements, initial_guess(), RetrievalConfig(iterations=2, **settings))
+    first.run(checkpoint=tmp_path / "ck.nc", progress=False)
+    resumed = Retrieval.resume(tmp_path / "ck.nc", measurements, initial_guess(), iterations=5)
+    resumed.run(progress=False)
+    np.testing.assert_array_equal(resumed.average(), straight.average())
+    assert resumed.state.average_weight == straight.state.average_weight

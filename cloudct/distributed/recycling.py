@@ -35,8 +35,7 @@ import numpy as np
 import xarray as xr
 
 from cloudct.distributed.core import DistributedError, executor, nbytes
-from cloudct.mc.gradient import check_residual
-from cloudct.mc.render import kernel_inputs
+from cloudct.mc.render import check_residual, kernel_inputs
 from cloudct.mc.scene import Scene
 from cloudct.medium import cell_edges
 from cloudct.recycling.recycler import Evaluation, Recycler

@@ -110,21 +110,26 @@ def backward_runner(
     return _CPURunner(backward_batches, head, (images, events))
 
 
-def drt_runner(
+def camera_gradient_runner(
     backend: str, k, rr_depth: int, rr_survival: float, seed: int, per_batch: int,
-    residual: np.ndarray, gradients: np.ndarray, events: np.ndarray,
+    method: tuple, residual: np.ndarray, table, gradients: np.ndarray, events: np.ndarray,
 ):
-    """Runner of :func:`~cloudct.mc.drt.drt_batches` on ``backend``."""
+    """Runner of :func:`~cloudct.mc.camera_gradient.camera_gradient_batches` on ``backend``:
+    ``method`` = (estimator code, probes, quadratic, mis) of DRT or sample matching, pixels
+    uniform or from the alias ``table``."""
     if backend == "cuda":
-        from cloudct.mc.cuda_kernels import DRTLauncher
+        from cloudct.mc.cuda_kernels import CameraGradientLauncher
 
-        return DRTLauncher(k, rr_depth, rr_survival, seed, per_batch, residual, gradients,
-                           events)
-    from cloudct.mc.drt import drt_batches
+        return CameraGradientLauncher(
+            k, rr_depth, rr_survival, seed, per_batch, method, residual, table, gradients,
+            events,
+        )
+    from cloudct.mc.camera_gradient import camera_gradient_batches
 
     head = (k.grid, k.bank, k.cams, k.sun, k.periodic, k.ground, rr_depth, rr_survival, seed,
             per_batch)
-    return _CPURunner(drt_batches, head, (residual, gradients, events))
+    return _CPURunner(camera_gradient_batches, head,
+                      (*method, residual, table, gradients, events))
 
 
 def sort_by_path_length(lengths: np.ndarray) -> np.ndarray:

@@ -34,7 +34,7 @@ from numba import config, cuda, njit
 from cloudct.mc.accumulate import add_to, register_cuda_implementation
 from cloudct.mc.backend import sort_by_path_length
 from cloudct.mc.backward import trace_pixel_sample
-from cloudct.mc.drt import drt_pixel_sample
+from cloudct.mc.camera_gradient import drawn_pixel, gradient_sample
 from cloudct.mc.forward import GRADIENT, RENDER, RESIDUAL, trace_photon
 
 register_cuda_implementation()
@@ -168,27 +168,37 @@ def backward_kernel(
 
 
 @cuda.jit
-def drt_kernel(
-    scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, out
+def camera_gradient_kernel(
+    scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, estimator,
+    probes, quadratic, mis, out,
 ):
-    """DRT samples ``first .. first + count - 1`` of every pixel and batch, with the sample
-    indices of :func:`cloudct.mc.drt.drt_batches`: out = (residual[view, row, col],
-    gradients[nbatch, nx, ny, nz], events[nbatch])."""
-    residual, gradients, events = out
+    """DRT or sample-matching samples ``first .. first + count - 1`` of every batch (and of
+    every pixel, when the alias table is empty), with the sample indices of
+    :func:`cloudct.mc.camera_gradient.camera_gradient_batches`: out = (residual[view, row,
+    col], table, gradients[nbatch, nx, ny, nz], events[nbatch])."""
+    residual, table, gradients, events = out
     nbatch = gradients.shape[0]
     t = cuda.grid(1)
-    if t >= residual.size * nbatch * count:
-        return
-    b, view, row, col, index = pixel_sample_of_thread(
-        t, nbatch, residual.shape[0], residual.shape[1], residual.shape[2], per_batch, first
-    )
-    r = residual[view, row, col]
-    if r == 0.0:
-        return
-    mis_length = scene.grid.z_edges[scene.grid.z_edges.size - 1] - scene.grid.z_edges[0]
-    vertices = drt_pixel_sample(
-        scene.grid, scene.bank, scene.cams, scene.sun, periodic, ground, rr_depth,
-        rr_survival, seed, index, view, row, col, r, gradients[b], mis_length,
+    nrows, ncols = residual.shape[1], residual.shape[2]
+    if table.pixel.size == 0:
+        if t >= residual.size * nbatch * count:
+            return
+        b, view, row, col, index = pixel_sample_of_thread(
+            t, nbatch, residual.shape[0], nrows, ncols, per_batch, first
+        )
+        weight = residual[view, row, col]
+        if weight == 0.0:
+            return
+    else:
+        if t >= nbatch * count:
+            return
+        b = t % nbatch
+        index = b * per_batch + first + t // nbatch
+        view, row, col, weight = drawn_pixel(table, seed, index, nrows, ncols)
+    vertices = gradient_sample(
+        estimator, scene.grid, scene.bank, scene.cams, scene.sun, periodic, ground, rr_depth,
+        rr_survival, seed, index, view, row, col, weight, gradients[b], probes, quadratic,
+        mis,
     )
     cuda.atomic.add(events, b, vertices)
 
@@ -279,8 +289,9 @@ class _Launcher(ABC):
             self.finish()
 
     def _pixel_sample_setup(self, k, rr_depth, rr_survival, seed, per_batch, host, tpb):
-        """Common state of the pixel-sample launchers (backward, DRT): the device scene,
-        the kernels' scalar arguments, and the host outputs (per-batch array first)."""
+        """Common state of the pixel-sample launchers (backward, DRT, sample matching): the
+        device scene, the kernels' scalar arguments, and the host outputs (per-batch array
+        first)."""
         self.scene = device_scene(k)
         self.scalars = (k.periodic, k.ground, rr_depth, rr_survival, seed, per_batch)
         self.per_batch = per_batch
@@ -390,26 +401,29 @@ class BackwardLauncher(_Launcher):
 
 
 
-class DRTLauncher(_Launcher):
-    """The CUDA counterpart of :func:`cloudct.mc.drt.drt_batches`."""
+class CameraGradientLauncher(_Launcher):
+    """The CUDA counterpart of :func:`cloudct.mc.camera_gradient.camera_gradient_batches`."""
 
     def __init__(
-        self, k, rr_depth, rr_survival, seed, per_batch, residual, gradients, events, *,
-        threads_per_block: int | None = None,
+        self, k, rr_depth, rr_survival, seed, per_batch, method, residual, table, gradients,
+        events, *, threads_per_block: int | None = None,
     ):
         self._pixel_sample_setup(k, rr_depth, rr_survival, seed, per_batch,
                                  (gradients, events), threads_per_block)
         _check_fits(gradients.nbytes, "the per-batch gradients")
+        self.method = method  # (estimator, probes, quadratic, mis)
         self.residual = to_device(residual)
+        self.table = to_device(table)
         self.gradients = device_zeros(gradients.shape)
         self.events = device_zeros(self.nbatch, np.int64)
-        self.npix = int(residual.size)
-        self.chunk = max(1, MAX_LAUNCH // (self.npix * self.nbatch))
+        # threads per sample index k: every pixel of every batch, or every batch (table)
+        self.width = self.nbatch * (1 if table.pixel.size else int(residual.size))
+        self.chunk = max(1, MAX_LAUNCH // self.width)
 
     def launch(self, first: int, count: int) -> None:
-        n = self.npix * self.nbatch * count
-        _launch(drt_kernel, n, self.tpb, self.scene, *self.scalars, first, count,
-                (self.residual, self.gradients, self.events))
+        _launch(camera_gradient_kernel, self.width * count, self.tpb, self.scene,
+                *self.scalars, first, count, *self.method,
+                (self.residual, self.table, self.gradients, self.events))
 
     def finish(self) -> None:
         gradients, events = self.host

@@ -128,18 +128,12 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-import xarray as xr
-from numba import njit, prange
+from numba import njit
 
 from cloudct.mc.accumulate import add_to
-from cloudct.mc.backend import drt_runner, resolve_backend
 from cloudct.mc.backward import camera_ray_entry
 from cloudct.mc.events import lambertian_bounce, russian_roulette, scatter
-from cloudct.mc.gradient import check_residual
 from cloudct.mc.random import DOMAIN_DRT, stream_start, uniform
-from cloudct.mc.render import check_sampling, kernel_inputs, run_in_rounds
-from cloudct.mc.scene import Scene
 from cloudct.mc.traversal import (
     BOTTOM,
     INF,
@@ -283,12 +277,12 @@ def trace_path(
                 found = True
                 rx, ry, rz, rix, riy, riz, rux, ruy, ruz = px, py, pz, ix, iy, iz, ux, uy, uz
             # Eq. (10) / Eq. (6): every later contribution is attenuated by this segment
-            status, px, py, pz, ix, iy, iz, _ = march(
+            status, px, py, pz, ix, iy, iz, _, _ = march(
                 grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic, gradient,
                 -residual * (total - radiance),
             )
         else:
-            status, px, py, pz, ix, iy, iz, _ = march(
+            status, px, py, pz, ix, iy, iz, _, _ = march(
                 grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
             )
         if status == LEFT:
@@ -350,6 +344,69 @@ def trace_path(
 
 
 @njit(cache=True)
+def cloud_sun_term(grid, bank, sun, periodic, px, py, pz, ix, iy, iz, ux, uy, uz):
+    """f_c(s.u) T_sun(x): the sunlight a unit of cloud scattering coefficient at x (voxel
+    (ix, iy, iz)) sends back along -u, per unit albedo (the sun part of K in the module
+    docstring)."""
+    ip = grid.phase_index[CLOUD, ix, iy, iz]
+    sx, sy, sz = -sun.direction[0], -sun.direction[1], -sun.direction[2]
+    tau_sun = optical_depth_to_exit(grid, px, py, pz, sx, sy, sz, ix, iy, iz, periodic)
+    return phase_function(bank, ip, sx * ux + sy * uy + sz * uz) * math.exp(-tau_sun)
+
+
+@njit(cache=True)
+def cloud_diffuse_term(
+    grid, bank, sun, periodic, ground_albedo, rr_depth, rr_survival, px, py, pz, ix, iy, iz,
+    ux, uy, uz, state, gradient, mis_length,
+):
+    """One-sample estimate of int f_c(u.w) L(x, w) dw (the diffuse part of K in the module
+    docstring): a new backward path from x in a direction w drawn from the cloud phase
+    function of voxel (ix, iy, iz), which exists on every voxel whatever its cloud
+    extinction. Only the radiance is needed, not its derivative (``gradient`` and
+    ``mis_length`` are not written).
+
+    Returns ``(radiance, vertices, state)``.
+    """
+    ip = grid.phase_index[CLOUD, ix, iy, iz]
+    u, state = uniform(state)
+    mu = sample_phase_cosine(bank, ip, u)
+    u, state = uniform(state)
+    wx, wy, wz = scatter_direction(ux, uy, uz, mu, TWO_PI * u)
+    radiance, vertices, state, _, _, _, _, _, _, _, _, _, _, _, _ = trace_path(
+        grid, bank, sun, periodic, ground_albedo, rr_depth, rr_survival, px, py, pz, ix, iy,
+        iz, wx, wy, wz, state, False, 0.0, 0.0, gradient, state, mis_length,
+    )
+    return radiance, vertices, state
+
+
+@njit(cache=True)
+def primal_pass(
+    grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, domain, index,
+    view, row, col, gradient, mis_length,
+):
+    """The start of a camera-side gradient sample (DRT, sample matching): the streams of
+    sample ``index`` in ``domain`` (2 index: the path, 2 index + 1: the side draws), the
+    pixel ray's entry into the medium and pass 1, the path's radiance estimate R = sum_k E_k.
+
+    Returns ``(hit, R, vertices, state, side, px, py, pz, ix, iy, iz, ux, uy, uz)`` with
+    ``state`` at the path's start, for pass 2 to replay it.
+    """
+    state = stream_start(seed, domain, 2 * index)
+    side = stream_start(seed, domain, 2 * index + 1)
+    hit, px, py, pz, ux, uy, uz, ix, iy, iz, state = camera_ray_entry(
+        grid, cams, periodic, view, row, col, state
+    )
+    total = 0.0
+    vertices = 0
+    if hit:
+        total, vertices, _, _, _, _, _, _, _, _, _, _, _, _, _ = trace_path(
+            grid, bank, sun, periodic, ground_albedo, rr_depth, rr_survival, px, py, pz, ix,
+            iy, iz, ux, uy, uz, state, False, 0.0, 0.0, gradient, side, mis_length,
+        )
+    return hit, total, vertices, state, side, px, py, pz, ix, iy, iz, ux, uy, uz
+
+
+@njit(cache=True)
 def drt_pixel_sample(
     grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, index, view,
     row, col, residual, gradient, mis_length,
@@ -358,18 +415,12 @@ def drt_pixel_sample(
 
     Returns the number of path vertices traced (the primal path once, the DRT path).
     """
-    state = stream_start(seed, DOMAIN_DRT, 2 * index)
-    side = stream_start(seed, DOMAIN_DRT, 2 * index + 1)
-    hit, px, py, pz, ux, uy, uz, ix, iy, iz, state = camera_ray_entry(
-        grid, cams, periodic, view, row, col, state
+    hit, total, vertices, state, side, px, py, pz, ix, iy, iz, ux, uy, uz = primal_pass(
+        grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
+        DOMAIN_DRT, index, view, row, col, gradient, mis_length,
     )
     if not hit:
         return 0
-    # pass 1: the path's radiance estimate
-    total, vertices, _, _, _, _, _, _, _, _, _, _, _, _, _ = trace_path(
-        grid, bank, sun, periodic, ground_albedo, rr_depth, rr_survival, px, py, pz, ix, iy,
-        iz, ux, uy, uz, state, False, 0.0, residual, gradient, side, mis_length,
-    )
     # pass 2: replay with deposits, segment reservoir on the side stream
     (_, _, _, side, res_w, found, rx, ry, rz, rix, riy, riz, rux, ruy, ruz) = trace_path(
         grid, bank, sun, periodic, ground_albedo, rr_depth, rr_survival, px, py, pz, ix, iy,
@@ -387,104 +438,11 @@ def drt_pixel_sample(
     alpha_c = grid.albedo[CLOUD, qix, qiy, qiz]
     if w_drt <= 0.0 or alpha_c <= 0.0:
         return vertices
-    ip = grid.phase_index[CLOUD, qix, qiy, qiz]
-    sx, sy, sz = -sun.direction[0], -sun.direction[1], -sun.direction[2]
-    tau_sun = optical_depth_to_exit(grid, qx, qy, qz, sx, sy, sz, qix, qiy, qiz, periodic)
-    value = phase_function(bank, ip, sx * rux + sy * ruy + sz * ruz) * math.exp(-tau_sun)
-    # diffuse part: a new path from x' in a direction drawn from the cloud phase function
-    u, side = uniform(side)
-    mu = sample_phase_cosine(bank, ip, u)
-    u, side = uniform(side)
-    wx, wy, wz = scatter_direction(rux, ruy, ruz, mu, TWO_PI * u)
-    diffuse, more, _, _, _, _, _, _, _, _, _, _, _, _, _ = trace_path(
+    value = cloud_sun_term(grid, bank, sun, periodic, qx, qy, qz, qix, qiy, qiz, rux, ruy, ruz)
+    diffuse, more, side = cloud_diffuse_term(
         grid, bank, sun, periodic, ground_albedo, rr_depth, rr_survival, qx, qy, qz, qix, qiy,
-        qiz, wx, wy, wz, side, False, 0.0, residual, gradient, side, mis_length,
+        qiz, rux, ruy, ruz, side, gradient, mis_length,
     )
     value += diffuse
     add_to(gradient, qix, qiy, qiz, residual * res_w * c * w_drt * alpha_c * value)
     return vertices + more
-
-
-@njit(parallel=True, cache=True)
-def drt_batches(
-    grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
-    samples_per_batch, first, last, residual, gradients, events,
-):
-    """gradients[b] (float64[nbatch, nx, ny, nz]) accumulates batch b's sum over its samples of
-    residual-weighted dI/dbeta_cloud estimates (not yet divided by samples_per_batch).
-
-    Samples ``first .. last - 1`` of every pixel in every batch, parallel over batches, with
-    the sample indices of :func:`cloudct.mc.backward.backward_batches`; pixels whose residual
-    is 0 are skipped. ``events[b]`` accumulates the number of path vertices traced.
-    """
-    nbatch = gradients.shape[0]
-    nview, nrows, ncols = residual.shape
-    mis_length = grid.z_edges[-1] - grid.z_edges[0]
-    for b in prange(nbatch):
-        n = 0
-        for view in range(nview):
-            for row in range(nrows):
-                for col in range(ncols):
-                    r = residual[view, row, col]
-                    if r == 0.0:
-                        continue
-                    pixel = (view * nrows + row) * ncols + col
-                    for k in range(first, last):
-                        index = (pixel * nbatch + b) * samples_per_batch + k
-                        n += drt_pixel_sample(
-                            grid, bank, cams, sun, periodic, ground_albedo, rr_depth,
-                            rr_survival, seed, index, view, row, col, r, gradients[b],
-                            mis_length,
-                        )
-        events[b] += n
-
-
-def drt_gradient(
-    medium: xr.Dataset,
-    scene: Scene,
-    residual: np.ndarray,
-    *,
-    samples_per_pixel: int,
-    seed: int = 0,
-    batches: int = 32,
-    rr_depth: int = 100,
-    rr_survival: float = 0.95,
-    progress: bool | None = False,
-    backend: str = "cpu",
-) -> tuple[np.ndarray, np.ndarray]:
-    """sum_d residual_d dI_d / d(cloud extinction) per voxel, by differential ratio tracking.
-
-    Parameters
-    ----------
-    medium
-        A medium Dataset (optical, or microphysical: converted with the default optics).
-    scene
-        Cameras, sun, boundary conditions and ground.
-    residual
-        Per-pixel weights, shape (view, row, col), e.g. w_d (I_d - I_d^measured).
-    samples_per_pixel
-        Backward samples per pixel, rounded up to a multiple of ``batches``.
-    seed, batches, rr_depth, rr_survival
-        As for :func:`cloudct.mc.render.render`.
-
-    Returns
-    -------
-    ``(mean, std_error)``, float64[nx, ny, nz] each, in km x (residual units x radiance
-    units): the mean over the batches and its standard error (std of the batch means over
-    sqrt(batches)).
-    """
-    check_sampling(samples_per_pixel, batches, rr_depth, rr_survival)
-    residual = check_residual(residual, scene)
-    k = kernel_inputs(medium, scene)
-
-    per_batch = math.ceil(int(samples_per_pixel) / batches)
-    gradients = np.zeros((batches, *k.grid.extinction.shape[1:]))
-    events = np.zeros(batches, dtype=np.int64)
-    run = drt_runner(
-        resolve_backend(backend), k, rr_depth, rr_survival, seed, per_batch, residual,
-        gradients, events,
-    )
-    run_in_rounds(run, per_batch, batches, progress, unit="sample/px", desc="DRT",
-                  max_rounds=run.max_rounds)
-    batch_means = gradients / per_batch
-    return batch_means.mean(axis=0), batch_means.std(axis=0, ddof=1) / math.sqrt(batches)

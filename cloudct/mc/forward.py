@@ -230,12 +230,12 @@ def trace_photon(
     while True:
         u, state = uniform(state)
         if mode == GRADIENT and remaining != 0.0:
-            status, px, py, pz, ix, iy, iz, _ = march(
+            status, px, py, pz, ix, iy, iz, _, _ = march(
                 grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic, gradient,
                 -remaining,
             )
         else:
-            status, px, py, pz, ix, iy, iz, _ = march(
+            status, px, py, pz, ix, iy, iz, _, _ = march(
                 grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
             )
         if mode >= COUNT:

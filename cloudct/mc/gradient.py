@@ -10,8 +10,11 @@ coefficient changes with its extinction; air is not differentiated.
   wherever paths can scatter; where the total extinction is zero no vertex can land, so it
   misses the in-scattering a small increase of the cloud there would create.
 - DRT on the backward estimator (:mod:`cloudct.mc.drt`), unbiased everywhere.
+- Sample matching on the backward estimator (:mod:`cloudct.mc.sample_matching`), unbiased
+  everywhere, with the scattering and attenuation terms evaluated at shared probe points.
 
-Both return the mean over independent batches and its standard error per voxel.
+All return the mean over independent batches and its standard error per voxel;
+:func:`gradient_estimate` chooses one by name, as the retrieval does.
 """
 
 from __future__ import annotations
@@ -21,22 +24,18 @@ import math
 import numpy as np
 import xarray as xr
 
-from cloudct.mc.backend import forward_runner, resolve_backend
+from cloudct.mc.backend import camera_gradient_runner, forward_runner, resolve_backend
+from cloudct.mc.camera_gradient import DRT, SAMPLE_MATCHING
 from cloudct.mc.forward import GRADIENT
-from cloudct.mc.render import check_sampling, kernel_inputs, run_in_rounds
+from cloudct.mc.pixel_sampling import pixel_table
+from cloudct.mc.render import check_residual, check_sampling, kernel_inputs, run_in_rounds
 from cloudct.mc.scene import Scene
 
-
-def check_residual(residual: np.ndarray, scene: Scene) -> np.ndarray:
-    """The residual weights as a float64 (view, row, col) array matching the scene."""
-    residual = np.ascontiguousarray(residual, dtype=np.float64)
-    cam = scene.cameras[0]
-    shape = (len(scene.cameras), cam.nrows, cam.ncols)
-    if residual.shape != shape:
-        raise ValueError(f"residual has shape {residual.shape}, the scene's images {shape}")
-    if not np.all(np.isfinite(residual)):
-        raise ValueError("residual has NaN or infinite pixels (mask them with weight 0)")
-    return residual
+#: Gradient estimators by name: path score function (forward), differential ratio tracking
+#: and sample matching (both backward, from the cameras).
+ESTIMATORS = ("score", "drt", "sm")
+#: Sample matching's probes per segment by default (measured: docs/validation.md).
+SAMPLE_MATCHING_PROBES = 1
 
 
 def score_function_gradient(
@@ -73,11 +72,7 @@ def score_function_gradient(
             client, k, residual, seed=seed, per_batch=per_batch, batches=batches,
             rr_depth=rr_depth, rr_survival=rr_survival, backend=backend, progress=progress,
         )
-        return (
-            batch_means.mean(axis=0),
-            batch_means.std(axis=0, ddof=1) / math.sqrt(batches),
-            info,
-        )
+        return (*mean_and_std_error(batch_means), info)
     gradients = np.zeros((batches, *k.grid.extinction.shape[1:]))
     no_images = np.zeros((batches, 1, 1, 1))
     events = np.zeros(batches, dtype=np.int64)
@@ -91,11 +86,182 @@ def score_function_gradient(
         run, per_batch, batches, progress, unit="photon", desc="gradient",
         max_rounds=run.max_rounds,
     )
-    batch_means = gradients / per_batch
     info = {"photons": per_batch * batches, "events": int(events.sum()), "wall_time": wall,
             "backend": backend}
-    return (
-        batch_means.mean(axis=0),
-        batch_means.std(axis=0, ddof=1) / math.sqrt(batches),
-        info,
+    return (*mean_and_std_error(gradients / per_batch), info)
+
+
+def mean_and_std_error(batch_means: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mean over the batches (axis 0) and its standard error (std of the batch means
+    over sqrt(batches))."""
+    return (batch_means.mean(axis=0),
+            batch_means.std(axis=0, ddof=1) / math.sqrt(batch_means.shape[0]))
+
+
+def _camera_gradient(
+    estimator: int, medium: xr.Dataset, scene: Scene, residual: np.ndarray, *,
+    samples_per_pixel: int, seed: int, batches: int, rr_depth: int, rr_survival: float,
+    progress: bool | None, backend: str, pixel_sampling: str, probes: int = 1,
+    quadratic: bool = False, mis: bool = False,
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The camera-side estimators' common host side (see :func:`drt_gradient`)."""
+    check_sampling(samples_per_pixel, batches, rr_depth, rr_survival)
+    residual = check_residual(residual, scene)
+    k = kernel_inputs(medium, scene)
+    pixels = int(np.count_nonzero(residual))
+    table = pixel_table(residual, pixel_sampling)
+    # per batch: samples of each pixel (uniform), or as many samples in all (table)
+    per_batch = math.ceil(int(samples_per_pixel) / batches)
+    if table.pixel.size:
+        per_batch *= pixels
+    gradients = np.zeros((batches, *k.grid.extinction.shape[1:]))
+    events = np.zeros(batches, dtype=np.int64)
+    backend = resolve_backend(backend)
+    run = camera_gradient_runner(
+        backend, k, rr_depth, rr_survival, seed, per_batch,
+        (estimator, int(probes), bool(quadratic), bool(mis)), residual, table, gradients,
+        events,
     )
+    name = "DRT" if estimator == DRT else "sample matching"
+    wall = run_in_rounds(run, per_batch, batches, progress, unit="sample", desc=name,
+                         max_rounds=run.max_rounds)
+    info = {"photons": math.ceil(int(samples_per_pixel) / batches) * batches * pixels,
+            "events": int(events.sum()), "wall_time": wall, "backend": backend,
+            "pixel_sampling": pixel_sampling}
+    return (*mean_and_std_error(gradients / per_batch), info)
+
+
+def drt_gradient(
+    medium: xr.Dataset,
+    scene: Scene,
+    residual: np.ndarray,
+    *,
+    samples_per_pixel: int,
+    seed: int = 0,
+    batches: int = 32,
+    rr_depth: int = 100,
+    rr_survival: float = 0.95,
+    pixel_sampling: str = "uniform",
+    progress: bool | None = False,
+    backend: str = "cpu",
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """sum_d residual_d dI_d / d(cloud extinction) per voxel, by differential ratio
+    tracking (:mod:`cloudct.mc.drt`).
+
+    Parameters
+    ----------
+    medium
+        A medium Dataset (optical, or microphysical: converted with the default optics).
+    scene
+        Cameras, sun, boundary conditions and ground.
+    residual
+        Per-pixel weights, shape (view, row, col), e.g. w_d (I_d - I_d^measured).
+    samples_per_pixel
+        Backward samples per pixel with a non-zero residual, rounded up to a multiple of
+        ``batches``.
+    pixel_sampling
+        ``"uniform"``: that many samples of every such pixel; ``"residual"``: as many
+        samples in all, each of a pixel drawn with probability |r_d| / sum |r|
+        (:mod:`cloudct.mc.pixel_sampling`).
+    seed, batches, rr_depth, rr_survival, progress, backend
+        As for :func:`cloudct.mc.render.render`.
+
+    Returns
+    -------
+    ``(mean, std_error, info)``: float64[nx, ny, nz] each, in km x (residual units x
+    radiance units), the mean over the batches and its standard error (std of the batch
+    means over sqrt(batches)); ``info`` holds the samples traced ("photons"), the path
+    vertices and the wall time.
+    """
+    return _camera_gradient(
+        DRT, medium, scene, residual, samples_per_pixel=samples_per_pixel, seed=seed,
+        batches=batches, rr_depth=rr_depth, rr_survival=rr_survival, progress=progress,
+        backend=backend, pixel_sampling=pixel_sampling,
+    )
+
+
+def sample_matching_gradient(
+    medium: xr.Dataset,
+    scene: Scene,
+    residual: np.ndarray,
+    *,
+    samples_per_pixel: int,
+    probes: int = SAMPLE_MATCHING_PROBES,
+    quadratic: bool = False,
+    mis: bool = True,
+    seed: int = 0,
+    batches: int = 32,
+    rr_depth: int = 100,
+    rr_survival: float = 0.95,
+    pixel_sampling: str = "uniform",
+    progress: bool | None = False,
+    backend: str = "cpu",
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """sum_d residual_d dI_d / d(cloud extinction) per voxel, by sample matching
+    (:mod:`cloudct.mc.sample_matching`): ``probes`` stratified probes per path segment
+    share the sun (direct) terms; the indirect in-scattering is traced from one probe of
+    one segment per path chosen by reservoir sampling (``quadratic=False``) or of every
+    segment (``quadratic=True``); with ``mis`` the free-flight vertices take a share of it
+    where the medium is dense (the primal path's own continuation, as in DRT), without it
+    the probes take it all (the paper's dual suffix paths). Other parameters and the result
+    as for :func:`drt_gradient`."""
+    if int(probes) < 1:
+        raise ValueError(f"probes must be a positive count, got {probes}")
+    return _camera_gradient(
+        SAMPLE_MATCHING, medium, scene, residual, samples_per_pixel=samples_per_pixel,
+        seed=seed, batches=batches, rr_depth=rr_depth, rr_survival=rr_survival,
+        progress=progress, backend=backend, pixel_sampling=pixel_sampling, probes=probes,
+        quadratic=quadratic, mis=mis,
+    )
+
+
+def gradient_estimate(
+    medium: xr.Dataset,
+    scene: Scene,
+    residual: np.ndarray,
+    *,
+    estimator: str = "score",
+    paths: int,
+    seed: int = 0,
+    batches: int = 32,
+    pixel_sampling: str = "uniform",
+    progress: bool | None = False,
+    backend: str = "cpu",
+    client=None,
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """sum_d residual_d dI_d / d beta_cloud per voxel by the estimator named ``estimator``
+    (one of :data:`ESTIMATORS`), with ``paths`` paths in all.
+
+    ``"score"`` traces ``paths`` forward photons (each serves every pixel; ``client`` may
+    trace them on Dask workers). ``"drt"`` and ``"sm"`` trace camera paths on this machine:
+    ``ceil(paths / n)`` samples per pixel for the n pixels whose residual is not zero, drawn
+    per pixel (``pixel_sampling="uniform"``) or, as many in all, in proportion to
+    |residual| (``"residual"``; :mod:`cloudct.mc.pixel_sampling`).
+
+    Returns ``(mean, std_error, info)``; ``info`` holds the estimator, the paths traced
+    and the wall time in seconds.
+    """
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
+    if estimator == "score":
+        if pixel_sampling != "uniform":
+            raise ValueError("pixel_sampling applies to the camera-side estimators (drt, sm): "
+                             "one forward photon serves every pixel")
+        mean, std_error, info = score_function_gradient(
+            medium, scene, residual, photons=paths, seed=seed, batches=batches,
+            progress=progress, backend=backend, client=client,
+        )
+        info["estimator"] = estimator
+        return mean, std_error, info
+    if client is not None:
+        raise ValueError(f"estimator {estimator!r} runs on this machine only: no client")
+    residual = check_residual(residual, scene)
+    pixels = max(int(np.count_nonzero(residual)), 1)
+    run = drt_gradient if estimator == "drt" else sample_matching_gradient
+    mean, std_error, info = run(
+        medium, scene, residual, samples_per_pixel=max(math.ceil(int(paths) / pixels), 1),
+        seed=seed, batches=batches, pixel_sampling=pixel_sampling, progress=progress,
+        backend=backend,
+    )
+    info["estimator"] = estimator
+    return mean, std_error, info

@@ -157,6 +157,18 @@ def check_sampling(samples: int, batches: int, rr_depth: int, rr_survival: float
         raise ValueError("rr_survival must be in (0, 1] and rr_depth >= 1")
 
 
+def check_residual(residual: np.ndarray, scene: Scene) -> np.ndarray:
+    """The residual weights as a float64 (view, row, col) array matching the scene."""
+    residual = np.ascontiguousarray(residual, dtype=np.float64)
+    cam = scene.cameras[0]
+    shape = (len(scene.cameras), cam.nrows, cam.ncols)
+    if residual.shape != shape:
+        raise ValueError(f"residual has shape {residual.shape}, the scene's images {shape}")
+    if not np.all(np.isfinite(residual)):
+        raise ValueError("residual has NaN or infinite pixels (mask them with weight 0)")
+    return residual
+
+
 class KernelInputs(NamedTuple):
     """Everything the kernels need of a medium and a scene."""
 

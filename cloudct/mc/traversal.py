@@ -167,9 +167,11 @@ def march(
     (-log transmittance) with respect to each voxel's extinction, which the gradient
     estimators need. A :class:`Trail` records the crossings.
 
-    Returns ``(status, px, py, pz, ix, iy, iz, tau)`` with status :data:`STOPPED`,
-    :data:`LEFT` or :data:`BOTTOM`; the position and voxel are where the walk ended (for
-    LEFT and BOTTOM, on the face it left through) and ``tau`` the optical depth travelled.
+    Returns ``(status, px, py, pz, ix, iy, iz, tau, distance)`` with status
+    :data:`STOPPED`, :data:`LEFT` or :data:`BOTTOM`; the position and voxel are where the
+    walk ended (for LEFT and BOTTOM, on the face it left through), ``tau`` the optical depth
+    travelled and ``distance`` the length walked (with periodic boundaries, across the
+    wrapped faces).
     """
     xe = grid.x_edges
     ye = grid.y_edges
@@ -206,7 +208,8 @@ def march(
             trail.distance[0] += piece
         if stop:
             return (
-                STOPPED, px + piece * ux, py + piece * uy, pz + piece * uz, ix, iy, iz, tau_end
+                STOPPED, px + piece * ux, py + piece * uy, pz + piece * uz, ix, iy, iz, tau_end,
+                walked + piece,
             )
         tau += dtau
         walked += t
@@ -224,7 +227,7 @@ def march(
         if ix < 0 or ix == nx or iy < 0 or iy == ny or iz < 0 or iz == nz:
             status, px, py, pz, ix, iy, iz = cross_boundary(grid, px, py, pz, ix, iy, iz, periodic)
             if status != INSIDE:
-                return status, px, py, pz, ix, iy, iz, tau
+                return status, px, py, pz, ix, iy, iz, tau, walked
 
 
 @njit(cache=True)

@@ -30,8 +30,7 @@ import xarray as xr
 
 from cloudct.mc.backend import resolve_backend
 from cloudct.mc.forward import GRADIENT, RENDER
-from cloudct.mc.gradient import check_residual
-from cloudct.mc.render import KernelInputs, images_dataset, kernel_inputs
+from cloudct.mc.render import KernelInputs, check_residual, images_dataset, kernel_inputs
 from cloudct.medium import cell_edges
 from cloudct.recycling.kernels import (
     flat_total_extinction,

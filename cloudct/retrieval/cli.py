@@ -8,9 +8,17 @@ from pathlib import Path
 
 import xarray as xr
 
+from cloudct.mc.gradient import ESTIMATORS
+from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS
 from cloudct.mc.render import add_distributed_options
 from cloudct.medium import load_medium
-from cloudct.retrieval.loop import OPTIMIZERS, RECYCLING, Retrieval, RetrievalConfig
+from cloudct.retrieval.loop import (
+    AVERAGING,
+    OPTIMIZERS,
+    RECYCLING,
+    Retrieval,
+    RetrievalConfig,
+)
 from cloudct.retrieval.report import write_report
 
 
@@ -43,6 +51,8 @@ def config_from_options(args: argparse.Namespace, **settings) -> RetrievalConfig
         stage_steps=args.stage_steps, gradient_smoothing=args.gradient_smoothing,
         image_photons=args.image_photons,
         saturation_window=args.saturation_window, step_decay=args.step_decay,
+        estimator=args.estimator, pixel_sampling=args.pixel_sampling,
+        averaging=args.averaging, averaging_decay=args.averaging_decay,
     )
     return RetrievalConfig(**{**options, **settings})
 
@@ -70,8 +80,10 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
             run = Retrieval.resume(checkpoint, measurements, initial, truth=truth,
                                    iterations=args.iterations, **where)
         else:
-            config = config_from_options(args, seed=args.seed,
-                                         checkpoint_every=args.checkpoint_every)
+            settings = dict(seed=args.seed, checkpoint_every=args.checkpoint_every)
+            if client is not None and args.estimator is None:  # what the workers trace
+                settings["estimator"] = ["score"] * len(args.stages)
+            config = config_from_options(args, **settings)
             run = Retrieval(measurements, initial, config, truth=truth, **where)
         result = run.run(checkpoint=checkpoint, progress=None)
     finally:
@@ -177,6 +189,22 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) -
                    help="per stage: photons of the residual's images as a multiple of the "
                         "gradient's (default %(default)s; None: 4 at every stage, 1 with "
                         "lbfgsb)")
+    p.add_argument("--estimator", nargs="+", choices=ESTIMATORS, default=None,
+                   help="per stage: the gradient estimator, score (path score function, "
+                        "forward photons), drt (differential ratio tracking) or sm (sample "
+                        "matching), the last two tracing --photons camera paths on this "
+                        "machine (default %(default)s: sm, or score with --workers or "
+                        "--scheduler, a recycled gradient or lbfgsb)")
+    p.add_argument("--pixel-sampling", choices=PIXEL_SAMPLINGS, default=None,
+                   help="drt, sm: trace every pixel alike (uniform) or draw pixels in "
+                        "proportion to |residual| (residual, the default)")
+    p.add_argument("--averaging", choices=AVERAGING, default=RetrievalConfig.averaging,
+                   help="also keep an average of the iterates, restarted at every stage change "
+                        "and step decay: uniform (Polyak-Ruppert) or ema (exponential moving "
+                        "average); the result holds it as cloud_extinction_average and the log "
+                        "its epsilon and delta")
+    p.add_argument("--averaging-decay", type=float, default=RetrievalConfig.averaging_decay,
+                   help="--averaging ema: weight of the average so far at each iterate")
     p.add_argument("--saturation-window", type=int, default=RetrievalConfig.saturation_window,
                    help="iterations over which the loss must keep falling to stay in a stage")
     p.add_argument("--step-decay", type=float, default=RetrievalConfig.step_decay,

@@ -15,10 +15,13 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from cloudct.mc.gradient import score_function_gradient
+from cloudct.mc.gradient import (
+    ESTIMATORS,
+    drt_gradient,
+    sample_matching_gradient,
+    score_function_gradient,
+)
 from cloudct.mc.scene import Scene
-
-ESTIMATORS = ("score", "drt")
 
 
 def _estimate(
@@ -28,10 +31,9 @@ def _estimate(
         return score_function_gradient(
             medium, scene, residual, photons=samples, seed=seed, progress=False
         )[0]
-    if estimator == "drt":
-        from cloudct.mc.drt import drt_gradient
-
-        return drt_gradient(medium, scene, residual, samples_per_pixel=samples, seed=seed)[0]
+    if estimator in ("drt", "sm"):
+        run = drt_gradient if estimator == "drt" else sample_matching_gradient
+        return run(medium, scene, residual, samples_per_pixel=samples, seed=seed)[0]
     raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
 
 
@@ -45,8 +47,8 @@ def gradient_statistics(
 ) -> xr.Dataset:
     """Per-voxel mean and single-estimate standard deviation of each estimator.
 
-    ``samples`` maps an estimator name ("score": forward photons, "drt": backward samples
-    per pixel) to its sample count per estimate; ``seeds`` independent estimates are made.
+    ``samples`` maps an estimator name ("score": forward photons, "drt" and "sm": backward
+    samples per pixel) to its sample count per estimate; ``seeds`` independent estimates are made.
     """
     if seeds < 2:
         raise ValueError("at least two seeds are needed for a spread")

@@ -23,7 +23,8 @@ import xarray as xr
 from tqdm.auto import tqdm
 
 from cloudct.mc.cameras import Camera
-from cloudct.mc.gradient import score_function_gradient
+from cloudct.mc.gradient import ESTIMATORS, gradient_estimate
+from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS
 from cloudct.mc.scene import Scene
 from cloudct.medium import cell_edges, validate_medium
 from cloudct.retrieval.loss import image_loss, loss_and_gradient, pixel_weights
@@ -46,7 +47,9 @@ PER_STAGE_DEFAULTS = (
     ("stage_steps", float, 1.0, 1.0),
     ("gradient_smoothing", float, 1.0, 0.0), ("image_photons", float, 4.0, 1.0),
 )
-LOG_FIELDS = ("loss", "epsilon", "delta", "seconds", "photons", "stage", "resampled", "ess")
+LOG_FIELDS = ("loss", "epsilon", "delta", "seconds", "photons", "stage", "resampled", "ess",
+              "gradient_seconds", "epsilon_average", "delta_average")
+AVERAGING = ("none", "uniform", "ema")
 
 
 @dataclass
@@ -56,7 +59,11 @@ class RetrievalConfig:
     The defaults are those of the best measured run on the seed paper's single cloud from
     the soft-carved start (docs/benchmarks.md): one stage at 2 x 2 pixel blocks, the
     gradient smoothed over 1 voxel, 4x photons for the residual's images, Adam with a step
-    of 1 /km halved whenever the loss saturates. The seed paper's step of 2 /km with
+    of 1 /km halved whenever the loss saturates, and the gradient by sample matching from
+    pixels drawn in proportion to |residual| (``estimator``, ``pixel_sampling``: 100-400
+    times the score function's precision per second near the plateau, docs/benchmarks.md;
+    the score function where stored paths are replayed, which only it can). The seed
+    paper's step of 2 /km with
     coarse-to-fine stages 4, 2, 1 walks away from that start. The L1 prior (``sparsity``,
     :meth:`Retrieval.l1_gradient`) is off by default: it changes what is estimated, and its
     weight was measured on that cloud (0.01 /km^2 lowered epsilon there) and checked on one
@@ -98,6 +105,14 @@ class RetrievalConfig:
     # gradient's paths fresh every iteration (Retrieval._recycled_loss_and_gradient)
     trust_region: float = 0.3  # lbfgsb: relative change of a voxel's extinction per window
     sparsity: float = 0.0  # 1/km^2: weight of the L1 prior (Retrieval.l1_gradient)
+    estimator: tuple[str, ...] | None = None  # per stage: gradient estimator, one of
+    # cloudct.mc.gradient.ESTIMATORS (None: "sm", or "score" where the gradient is replayed)
+    pixel_sampling: str | None = None  # camera-side estimators: pixels "uniform" or
+    # drawn in proportion to |residual| (cloudct.mc.pixel_sampling; None: "residual")
+    averaging: str = "none"  # iterate average (Retrieval.average): "none", "uniform"
+    # (Polyak-Ruppert) or "ema" (exponential moving average), restarted at every stage
+    # change and step decay
+    averaging_decay: float = 0.9  # "ema": weight of the average so far at each iterate
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -109,12 +124,35 @@ class RetrievalConfig:
             values = getattr(self, name)
             values = (default,) * len(self.stages) if values is None else values
             setattr(self, name, tuple(kind(v) for v in values))
+        if self.estimator is None:  # the best measured, where stored paths are not replayed
+            replayed = quasi_newton or (self.recycling != "none" and self.recycle_gradient)
+            self.estimator = ("score" if replayed else "sm",) * len(self.stages)
+        self.estimator = tuple(str(name) for name in self.estimator)
+        camera_side = any(name != "score" for name in self.estimator)
+        if self.pixel_sampling is None:
+            self.pixel_sampling = "residual" if camera_side else "uniform"
         per_stage = (self.stage_photons, self.voxel_blocks, self.stage_steps,
-                     self.gradient_smoothing, self.image_photons)
+                     self.gradient_smoothing, self.image_photons, self.estimator)
         if not self.stages or any(len(v) != len(self.stages) for v in per_stage):
             raise ValueError(
-                "stages, stage_photons, voxel_blocks, stage_steps, gradient_smoothing and "
-                "image_photons must have the same, non-zero length"
+                "stages, stage_photons, voxel_blocks, stage_steps, gradient_smoothing, "
+                "image_photons and estimator must have the same, non-zero length"
+            )
+        if any(name not in ESTIMATORS for name in self.estimator):
+            raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator}")
+        if self.pixel_sampling not in PIXEL_SAMPLINGS:
+            raise ValueError(
+                f"pixel_sampling must be one of {PIXEL_SAMPLINGS}, got {self.pixel_sampling!r}"
+            )
+        if self.pixel_sampling != "uniform" and not camera_side:
+            raise ValueError("pixel_sampling applies to the camera-side estimators (drt, sm); "
+                             "every stage uses the score function")
+        if camera_side and (quasi_newton or (self.recycling != "none"
+                                             and self.recycle_gradient)):
+            raise ValueError(
+                "recycled gradients (a recycling policy without recycle_gradient=False) and "
+                "optimizer 'lbfgsb' replay stored forward paths: they need the estimator "
+                "'score' at every stage"
             )
         if min(self.gradient_smoothing) < 0.0:
             raise ValueError(f"gradient_smoothing must be >= 0, got {self.gradient_smoothing}")
@@ -141,6 +179,10 @@ class RetrievalConfig:
             )
         if self.sparsity < 0.0:
             raise ValueError(f"sparsity must be >= 0, got {self.sparsity}")
+        if self.averaging not in AVERAGING:
+            raise ValueError(f"averaging must be one of {AVERAGING}, got {self.averaging!r}")
+        if not 0.0 < self.averaging_decay < 1.0:
+            raise ValueError(f"averaging_decay must be in (0, 1), got {self.averaging_decay}")
         if quasi_newton and (
             self.recycling != "none" or max(self.voxel_blocks) > 1
             or max(self.gradient_smoothing) > 0.0 or self.sparsity > 0.0
@@ -196,8 +238,9 @@ def coarse_measurements(measurements: xr.Dataset, block: int) -> xr.Dataset:
 def run_id(measurements: xr.Dataset, config: RetrievalConfig) -> str:
     """A fingerprint of the measurements and settings: a checkpoint resumes only its run."""
     h = hashlib.sha256(np.ascontiguousarray(measurements["radiance"].values).tobytes())
-    # the path stores' memory picks how they are stored, which changes rounding only
-    ignored = ["iterations", "time_limit", "recycling_memory"]
+    # the path stores' memory picks how they are stored, which changes rounding only; the
+    # iterate average does not change the iterates
+    ignored = ["iterations", "time_limit", "recycling_memory", "averaging", "averaging_decay"]
     # settings added later are fingerprinted only where they act (old checkpoints resume)
     if config.optimizer != "lbfgsb":
         ignored.append("trust_region")
@@ -205,6 +248,10 @@ def run_id(measurements: xr.Dataset, config: RetrievalConfig) -> str:
         ignored.append("sparsity")
     if config.recycle_gradient:
         ignored.append("recycle_gradient")
+    if all(name == "score" for name in config.estimator):
+        ignored.append("estimator")
+    if config.pixel_sampling == "uniform":
+        ignored.append("pixel_sampling")
     settings = {k: v for k, v in asdict(config).items() if k not in ignored}
     h.update(json.dumps(settings, sort_keys=True).encode())
     return h.hexdigest()[:16]
@@ -222,6 +269,8 @@ class RetrievalState:
     elapsed: float = 0.0
     step_scale: float = 1.0  # the step is config.step x this (step decay)
     decayed_at: int = 0  # iteration of the last decay (the saturation window restarts)
+    average_sum: np.ndarray | None = None  # weighted sum of the iterates since the restart
+    average_weight: float = 0.0  # its sum of weights (Retrieval.average)
 
 
 class Retrieval:
@@ -263,6 +312,9 @@ class Retrieval:
         quasi_newton = self.config.optimizer == "lbfgsb"
         if quasi_newton and client is not None:
             raise ValueError("optimizer 'lbfgsb' records its paths on this machine: no client")
+        if client is not None and any(e != "score" for e in self.config.estimator):
+            raise ValueError("the camera-side estimators (drt, sm) trace on this machine: "
+                             "use the estimator 'score' with a client")
         self.optimizer = None if quasi_newton else make_optimizer(
             self.config.optimizer, self.config.step
         )
@@ -293,23 +345,56 @@ class Retrieval:
         photons, gradient_photons = self.config.photons_at(s.stage)
         if self.optimizer is None:
             loss, resampled, ess = self._lbfgsb_window(photons, gradient_photons), 1.0, math.nan
+            gradient_seconds = math.nan
         else:
-            loss, resampled, ess = self._first_order_step(photons, gradient_photons)
-        eps, delta = (math.nan, math.nan)
+            loss, resampled, ess, gradient_seconds = self._first_order_step(
+                photons, gradient_photons
+            )
+        eps, delta = eps_average, delta_average = (math.nan, math.nan)
+        average = self._add_to_average()
         if self.truth is not None:
             eps, delta = epsilon_delta(self.truth, s.extinction)
+            if average is not None:
+                eps_average, delta_average = epsilon_delta(self.truth, average)
         seconds = time.perf_counter() - start
         s.elapsed += seconds
         row = {
             "loss": loss, "epsilon": eps, "delta": delta, "seconds": s.elapsed,
             "photons": photons + gradient_photons, "stage": s.stage, "resampled": resampled,
-            "ess": ess, "iteration_seconds": seconds,
+            "ess": ess, "iteration_seconds": seconds, "gradient_seconds": gradient_seconds,
+            "epsilon_average": eps_average, "delta_average": delta_average,
         }
         for key in LOG_FIELDS:
             s.log[key].append(float(row[key]))
         s.iteration += 1
+        stage, step_scale = s.stage, s.step_scale
         self._advance_stage_if_saturated()
+        if (s.stage, s.step_scale) != (stage, step_scale):  # another optimisation: restart
+            s.average_sum, s.average_weight = None, 0.0
         return row
+
+    def _add_to_average(self) -> np.ndarray | None:
+        """Add the current iterate to the iterate average and return the average (None
+        without averaging): sum_k d^(n-k) beta_k / sum_k d^(n-k) over the iterates k = 1 ..
+        n since the last restart, with d = 1 for the uniform (Polyak-Ruppert) average and
+        d = ``averaging_decay`` for the moving average (an exponential moving average with
+        Adam's bias correction, which the normalisation is)."""
+        s, cfg = self.state, self.config
+        if cfg.averaging == "none":
+            return None
+        d = 1.0 if cfg.averaging == "uniform" else cfg.averaging_decay
+        total = 0.0 if s.average_sum is None else d * s.average_sum
+        s.average_sum = total + s.extinction
+        s.average_weight = d * s.average_weight + 1.0
+        return self.average()
+
+    def average(self) -> np.ndarray | None:
+        """The iterate average (``config.averaging``; None without one or before the first
+        iterate of the current stage)."""
+        s = self.state
+        if s.average_sum is None:
+            return None
+        return s.average_sum / s.average_weight
 
     def l1_gradient(self, stage: int) -> np.ndarray | float:
         """dP/dbeta of the L1 prior at ``stage`` (0 without one; float[x, y, z] with one):
@@ -357,20 +442,23 @@ class Retrieval:
 
     def _first_order_step(
         self, photons: int, gradient_photons: int
-    ) -> tuple[float, float, float]:
+    ) -> tuple[float, float, float, float]:
         """Loss and gradient (fresh or recycled), preconditioned, and the optimiser's step;
-        returns (loss, resampled, ESS fraction)."""
+        returns (loss, resampled, ESS fraction, the gradient's seconds)."""
         s = self.state
         if self.config.recycling == "none":
             result = loss_and_gradient(
                 self.medium(), self._stage_data[s.stage], photons=photons,
                 gradient_photons=gradient_photons, seed=self._seed(s.iteration),
-                backend=self.backend, client=self.client,
+                estimator=self.config.estimator[s.stage],
+                pixel_sampling=self.config.pixel_sampling, backend=self.backend,
+                client=self.client,
             )
             loss, gradient, resampled, ess = result.loss, result.gradient, 1.0, math.nan
+            gradient_seconds = result.gradient_info["wall_time"]
         else:
-            loss, gradient, resampled, ess = self._recycled_loss_and_gradient(
-                photons, gradient_photons
+            loss, gradient, resampled, ess, gradient_seconds = (
+                self._recycled_loss_and_gradient(photons, gradient_photons)
             )
         gradient = smoothed_gradient(
             block_mean(gradient + self.l1_gradient(s.stage), self.mask,
@@ -381,11 +469,11 @@ class Retrieval:
         self.optimizer.step = self.config.step * self._stage_step()
         s.extinction = self.optimizer.update(s.extinction, gradient, self.mask)
         s.optimizer_state = self.optimizer.state
-        return loss, resampled, ess
+        return loss, resampled, ess, gradient_seconds
 
     def _recycled_loss_and_gradient(
         self, photons: int, gradient_photons: int
-    ) -> tuple[float, np.ndarray, float, float]:
+    ) -> tuple[float, np.ndarray, float, float, float]:
         """Loss and gradient from the stage's recycler (seed paper Alg. 2): stored paths
         re-evaluated under the current medium, resampled when the policy says so.
 
@@ -431,14 +519,17 @@ class Retrieval:
             medium, residual=residual if config.recycle_gradient else None
         )
         loss = image_loss(ev.images["radiance"].values, measured, w)[0]
-        gradient = ev.gradient
+        gradient, gradient_seconds = ev.gradient, math.nan  # replayed with the images
         if not config.recycle_gradient:
-            gradient = score_function_gradient(
+            gradient, _, info = gradient_estimate(
                 medium, Scene.from_dataset(data), residual(ev.images),
-                photons=gradient_photons, seed=2 * self._seed(s.iteration) + 1,
+                estimator=config.estimator[s.stage], paths=gradient_photons,
+                seed=2 * self._seed(s.iteration) + 1, pixel_sampling=config.pixel_sampling,
                 backend=self.backend, client=self.client,
-            )[0]
-        return loss, gradient, float(ev.info["resampled"]), float(ev.info["ess_fraction"])
+            )
+            gradient_seconds = info["wall_time"]
+        return (loss, gradient, float(ev.info["resampled"]), float(ev.info["ess_fraction"]),
+                gradient_seconds)
 
     def _advance_stage_if_saturated(self) -> None:
         """Next stage when the loss saturates; at the last stage, a step decay instead."""
@@ -505,20 +596,37 @@ class Retrieval:
         ds["log_loss"].attrs.update(units="1", long_name="loss, seed paper Eq. (41)")
         ds["log_epsilon"].attrs.update(units="1", long_name="epsilon, seed paper Eq. (54)")
         ds["log_delta"].attrs.update(units="1", long_name="delta, seed paper Eq. (54)")
+        ds["log_gradient_seconds"].attrs.update(
+            units="s", long_name="wall time of the iteration's fresh gradient (NaN: replayed)"
+        )
+        for key in ("epsilon_average", "delta_average"):
+            ds[f"log_{key}"].attrs.update(
+                units="1", long_name=f"{key.split('_')[0]} of the iterate average"
+            )
         ds["cloud_mask"] = (("x", "y", "z"), self.mask.astype(np.int8))
         ds["cloud_mask"].attrs.update(units="1", long_name="carved cloud hull (1 = inside)")
+        average = self.average()
+        if average is not None:
+            ds["cloud_extinction_average"] = (("x", "y", "z"), average)
+            ds["cloud_extinction_average"].attrs.update(
+                units="km-1", long_name=f"{self.config.averaging} average of the iterates of "
+                "the last stage (and step) of cloud extinction",
+            )
         ds.attrs.update(
             title="cloudct retrieval", run_id=self.id, config=json.dumps(asdict(self.config)),
             iterations_done=s.iteration, stage=s.stage, elapsed_s=s.elapsed,
-            step_scale=s.step_scale, decayed_at=s.decayed_at,
+            step_scale=s.step_scale, decayed_at=s.decayed_at, average_weight=s.average_weight,
         )
         return ds
 
     def save_checkpoint(self, path: str | Path) -> None:
-        """Write the state (extinction, optimiser moments, log, stage) atomically."""
+        """Write the state (extinction, optimiser moments, iterate average, log, stage)
+        atomically."""
         ds = self.result()
         for key, value in self.state.optimizer_state.items():
             ds[f"optimizer_{key}"] = (("x", "y", "z") if np.ndim(value) == 3 else (), value)
+        if self.state.average_sum is not None:
+            ds["average_sum"] = (("x", "y", "z"), self.state.average_sum)
         path = Path(path)
         tmp = path.with_suffix(path.suffix + ".tmp")
         ds.to_netcdf(tmp)
@@ -542,6 +650,9 @@ class Retrieval:
         the checkpoint, so the resumed run first records new paths under the current medium."""
         ck = xr.load_dataset(path)
         config_dict = json.loads(ck.attrs["config"])
+        # checkpoints from before the estimator choice traced the score function
+        config_dict.setdefault("estimator", ("score",) * len(config_dict["stages"]))
+        config_dict.setdefault("pixel_sampling", "uniform")
         if iterations is not None:
             config_dict["iterations"] = iterations
         config = RetrievalConfig(**config_dict)
@@ -552,7 +663,9 @@ class Retrieval:
                 f"checkpoint {path} belongs to another run (id {ck.attrs['run_id']}, these "
                 f"measurements and settings give {run.id})"
             )
-        log = {k: [float(v) for v in ck[f"log_{k}"].values] for k in LOG_FIELDS}
+        n = ck.sizes["iteration"]  # fields added later are NaN in older checkpoints
+        log = {k: [float(v) for v in (ck[f"log_{k}"].values if f"log_{k}" in ck
+                                      else np.full(n, np.nan))] for k in LOG_FIELDS}
         optimizer_state = {
             name.removeprefix("optimizer_"): ck[name].values
             for name in ck.data_vars if name.startswith("optimizer_")
@@ -562,5 +675,7 @@ class Retrieval:
             extinction=ck["cloud_extinction"].values.astype(float),
             optimizer_state=optimizer_state, log=log, elapsed=float(ck.attrs["elapsed_s"]),
             step_scale=float(ck.attrs["step_scale"]), decayed_at=int(ck.attrs["decayed_at"]),
+            average_sum=ck["average_sum"].values if "average_sum" in ck else None,
+            average_weight=float(ck.attrs.get("average_weight", 0.0)),
         )
         return run

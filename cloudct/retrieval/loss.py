@@ -20,23 +20,23 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
-from cloudct.mc.gradient import score_function_gradient
+from cloudct.mc.gradient import gradient_estimate
 from cloudct.mc.render import render
 from cloudct.mc.scene import Scene
-
-ESTIMATORS = ("score",)
 
 
 @dataclass
 class LossGradient:
-    """A loss evaluation: the loss, its gradient over (x, y, z) with standard errors, and
-    the images the residual was computed from."""
+    """A loss evaluation: the loss, its gradient over (x, y, z) with standard errors, the
+    images the residual was computed from, and the gradient estimator's info (estimator,
+    paths, wall time)."""
 
     loss: float
     gradient: np.ndarray
     gradient_std_error: np.ndarray
     images: xr.Dataset
     residual: np.ndarray
+    gradient_info: dict
 
 
 def pixel_weights(
@@ -96,6 +96,7 @@ def loss_and_gradient(
     weights: np.ndarray | None = None,
     mask: np.ndarray | None = None,
     estimator: str = "score",
+    pixel_sampling: str = "uniform",
     batches: int = 32,
     progress: bool | None = False,
     backend: str = "cpu",
@@ -105,12 +106,12 @@ def loss_and_gradient(
     scene, as written by :func:`cloudct.mc.render.render`) and its gradient.
 
     ``photons`` render the images of the residual (seed ``2 seed``); ``gradient_photons``
-    (default: ``photons``) estimate the gradient on independent paths (seed ``2 seed + 1``).
-    ``backend`` and ``client`` (a Dask client, address or executor) as for
-    :func:`cloudct.mc.render.render`; with a client the medium is scattered once for both.
+    (default: ``photons``) paths estimate the gradient on independent paths (seed ``2 seed
+    + 1``) by ``estimator`` with ``pixel_sampling``
+    (:func:`cloudct.mc.gradient.gradient_estimate`). ``backend`` and ``client`` (a Dask
+    client, address or executor) as for :func:`cloudct.mc.render.render`; with a client the
+    medium is scattered once for both.
     """
-    if estimator not in ESTIMATORS:
-        raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
     scene = Scene.from_dataset(measurements)
     w = pixel_weights(measurements, weights, mask)
     images = render(
@@ -118,8 +119,9 @@ def loss_and_gradient(
         backend=backend, client=client,
     )
     loss, residual = image_loss(images["radiance"].values, measurements["radiance"].values, w)
-    mean, std_error, _ = score_function_gradient(
-        medium, scene, residual, photons=gradient_photons or photons, seed=2 * seed + 1,
-        batches=batches, progress=progress, backend=backend, client=client,
+    mean, std_error, info = gradient_estimate(
+        medium, scene, residual, estimator=estimator, paths=gradient_photons or photons,
+        seed=2 * seed + 1, batches=batches, pixel_sampling=pixel_sampling, progress=progress,
+        backend=backend, client=client,
     )
-    return LossGradient(loss, mean, std_error, images, residual)
+    return LossGradient(loss, mean, std_error, images, residual, info)

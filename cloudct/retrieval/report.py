@@ -42,8 +42,17 @@ def write_report(
         f"{float(result.attrs.get('elapsed_s', np.nan)):.0f} s, final stage "
         f"{result.attrs.get('stage', '?')}",
         f"- settings: `{json.dumps(config)}`",
-        "",
     ]
+    if "log_gradient_seconds" in result:
+        stages = result["log_stage"].values.astype(int)
+        names = config.get("estimator") or ["score"] * (stages.max() + 1)
+        for stage in np.unique(stages):
+            seconds = result["log_gradient_seconds"].values[stages == stage]
+            seconds = seconds[np.isfinite(seconds)]
+            cost = f"{seconds.mean():.2f} s per iteration" if seconds.size else "replayed"
+            lines.append(f"- stage {stage}: gradient estimator {names[stage]}"
+                         f" ({config.get('pixel_sampling', 'uniform')} pixels), {cost}")
+    lines.append("")
     beta = result["cloud_extinction"].values
     if "log_loss" in result:
         seconds = result["log_seconds"].values
@@ -61,7 +70,13 @@ def write_report(
         eps, delta = epsilon_delta(true_beta, beta)
         split = epsilon_split(true_beta, beta)
         lines += ["## Error against the truth (Eq. 54)", "",
-                  "| epsilon | delta |", "| --- | --- |", f"| {eps:.1%} | {delta:+.1%} |", "",
+                  "| medium | epsilon | delta |", "| --- | --- | --- |",
+                  f"| last iterate | {eps:.1%} | {delta:+.1%} |"]
+        if "cloud_extinction_average" in result:
+            eps_a, delta_a = epsilon_delta(true_beta, result["cloud_extinction_average"].values)
+            lines.append(f"| {config.get('averaging')} average of the iterates "
+                         f"(cloud_extinction_average) | {eps_a:.1%} | {delta_a:+.1%} |")
+        lines += ["",
                   "Where epsilon comes from (each relative to the true cloud's mass):", "",
                   "| outside the true cloud | inside the cloud | retrieved mass in the cloud |",
                   "| --- | --- | --- |",
@@ -71,6 +86,11 @@ def write_report(
             fig, ax = plt.subplots(figsize=(5, 3.5))
             ax.plot(result["log_seconds"].values, result["log_epsilon"].values, label="epsilon")
             ax.plot(result["log_seconds"].values, result["log_delta"].values, label="delta")
+            if "log_epsilon_average" in result and np.isfinite(
+                result["log_epsilon_average"].values
+            ).any():
+                ax.plot(result["log_seconds"].values, result["log_epsilon_average"].values,
+                        "--", label="epsilon of the iterate average")
             ax.axhline(0, color="k", lw=0.5)
             ax.set_xlabel("wall time [s]")
             ax.legend()
