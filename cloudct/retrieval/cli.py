@@ -244,8 +244,8 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
         "report. The run's settings are those of the best measured single-cloud retrieval: "
         "cloudct retrieve's defaults (one stage at 2x2 pixel blocks, gradient smoothed over "
         "1 voxel, 4x photons for the residual's images, step 1 /km halved when the loss "
-        "saturates) with the L1 prior --sparsity 0.01, and 60 iterations of 50,000 "
-        "gradient photons.",
+        "saturates, the gradient by sample matching from residual-drawn pixels) with the L1 "
+        "prior --sparsity 0.01, and 60 iterations of 50,000 gradient paths.",
     )
     d.add_argument("-o", "--output", default="cloudct_demo", help="output directory")
     d.add_argument("--overwrite", action="store_true",
