@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import sys
 
@@ -336,10 +337,12 @@ def test_cli_render_and_retrieve_on_workers(client, tmp_path):
     save_medium(scaled(medium, 0.8), tmp_path / "init.nc")
     common = ["retrieve", str(tmp_path / "meas.nc"), "--init", str(tmp_path / "init.nc"),
               "--iterations", "2", "--photons", "4000"]
-    assert main([*common, "-o", str(tmp_path / "r1.nc")]) == 0
+    # workers trace the score function: with a scheduler it is the default
+    assert main([*common, "-o", str(tmp_path / "r1.nc"), "--estimator", "score"]) == 0
     assert main([*common, "-o", str(tmp_path / "r2.nc"), "--scheduler", address]) == 0
     r1, r2 = xr.load_dataset(tmp_path / "r1.nc"), xr.load_dataset(tmp_path / "r2.nc")
     assert same(r1.cloud_extinction.values, r2.cloud_extinction.values)
+    assert set(json.loads(r2.attrs["config"])["estimator"]) == {"score"}
     assert same(r1.log_loss.values, r2.log_loss.values)
 
 

@@ -244,7 +244,7 @@ def test_residual_images_take_their_own_photon_count(measurements, monkeypatch):
     assert run.step()["photons"] == 1_000 + 1_000
     with pytest.raises(ValueError, match="image_photons must be > 0"):
         RetrievalConfig(stages=(1,), stage_photons=(1.0,), image_photons=(0.0,))
-    with pytest.raises(ValueError, match="image_photons must have the same"):
+    with pytest.raises(ValueError, match="image_photons and estimator must have the same"):
         RetrievalConfig(stages=(2, 1), stage_photons=(1.0, 1.0), image_photons=(1.0,))
 
 
