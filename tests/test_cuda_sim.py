@@ -89,21 +89,26 @@ residual = np.random.default_rng(2).normal(size=(2, 6, 6))
 for tpb in (1, 32):
     ck.THREADS_PER_BLOCK = tpb
     for name, scene in scenes.items():
-        for method, n in (("forward", 256), ("backward", 8)):
+        for label, method, n, aim in (("forward", "forward", 256, None),
+                                      ("aimed", "forward", 256, 0.3),
+                                      ("backward", "backward", 8, None)):
             runs = [render_batches(medium, scene, photons=n, batches=4, method=method,
-                                   progress=False, backend=b) for b in ("cpu", "cuda")]
+                                   aim_fraction=aim, progress=False, backend=b)
+                    for b in ("cpu", "cuda")]
             case = compare(runs[0][0], runs[1][0])
             case["events"] = [runs[0][1]["events"], runs[1][1]["events"]]
             case["backend"] = runs[1][1]["backend"]
-            out[f"{method}/{name}/tpb{tpb}"] = case
+            out[f"{label}/{name}/tpb{tpb}"] = case
     for sort in (False, True):
         ck.SORT_PATHS = sort
-        runs = [score_function_gradient(medium, scenes["open"], residual, photons=256,
-                                        batches=4, progress=False, backend=b)
-                for b in ("cpu", "cuda")]
-        case = compare(runs[0][0], runs[1][0])
-        case["events"] = [runs[0][2]["events"], runs[1][2]["events"]]
-        out[f"gradient/sort{int(sort)}/tpb{tpb}"] = case
+        for label, aim in (("gradient", None), ("gradient-aimed", 0.3)):
+            runs = [score_function_gradient(medium, scenes["open"], residual, photons=256,
+                                            batches=4, aim_fraction=aim, progress=False,
+                                            backend=b)
+                    for b in ("cpu", "cuda")]
+            case = compare(runs[0][0], runs[1][0])
+            case["events"] = [runs[0][2]["events"], runs[1][2]["events"]]
+            out[f"{label}/sort{int(sort)}/tpb{tpb}"] = case
 
 from cloudct.mc.gradient import drt_gradient, sample_matching_gradient
 camera_side = {
@@ -163,13 +168,15 @@ stores = [(name, storage, sort, {}) for name in scenes for storage in STORAGE
           if storage != "auto" for sort in (False, True)]
 if "connections" in STORAGE:  # camera connections of the variable (cloud) voxels only
     stores.append(("open", "connections", True, {"variable": ext > 0}))
+stores.append(("open", "crossings", True, {"aim_fraction": 0.3}))  # aimed paths
 out = {}
 for name, storage, sort, extra in stores:
     scene = scenes[name]
     res = residual[:len(scene.cameras)]
     store = record_paths(medium, scene, photons=48, batches=3, seed=5, storage=storage,
                          sort=sort, **extra)
-    label = f"{name}/{storage}{'-masked' if extra else ''}/sort{int(sort)}"
+    suffix = {"variable": "-masked", "aim_fraction": "-aimed"}.get(next(iter(extra), ""), "")
+    label = f"{name}/{storage}{suffix}/sort{int(sort)}"
     cpu_images, cpu_ii = replay_images(store, current)
     cpu_gradient, cpu_gi = replay_batch_gradients(store, current, res)
     cpu_log_w = correction_log_weights(store, current)
@@ -360,7 +367,8 @@ def simulated() -> dict:
 
 def test_simulator_is_the_cuda_backend(simulated):
     assert simulated["auto"] == "cuda"
-    renders = [v for key, v in simulated.items() if key.startswith(("forward/", "backward/"))]
+    renders = [v for key, v in simulated.items()
+               if key.startswith(("forward/", "aimed/", "backward/"))]
     assert renders and all(v["backend"] == "cuda" for v in renders)
 
 
@@ -374,8 +382,8 @@ def test_same_photon_same_path(simulated, key):
 
 @pytest.mark.parametrize(
     "key",
-    [f"{m}/{s}/tpb1" for m in ("forward", "backward") for s in ("open", "periodic")]
-    + ["gradient/sort0/tpb1"],
+    [f"{m}/{s}/tpb1" for m in ("forward", "aimed", "backward") for s in ("open", "periodic")]
+    + ["gradient/sort0/tpb1", "gradient-aimed/sort0/tpb1"],
 )
 def test_sequential_threads_match_cpu_bitwise(simulated, key):
     """One thread per block: the CPU's summation order, so bitwise equal batches."""
@@ -387,8 +395,9 @@ def test_sequential_threads_match_cpu_bitwise(simulated, key):
 
 @pytest.mark.parametrize(
     "key",
-    [f"{m}/{s}/tpb32" for m in ("forward", "backward") for s in ("open", "periodic")]
-    + ["gradient/sort1/tpb1", "gradient/sort0/tpb32", "gradient/sort1/tpb32"],
+    [f"{m}/{s}/tpb32" for m in ("forward", "aimed", "backward") for s in ("open", "periodic")]
+    + [f"{g}/{c}" for g in ("gradient", "gradient-aimed")
+       for c in ("sort1/tpb1", "sort0/tpb32", "sort1/tpb32")],
 )
 def test_reordered_threads_match_cpu_to_rounding(simulated, key):
     """Blocks of 32 threads, path-length order: summation order only, float64 rounding."""

@@ -26,6 +26,7 @@ from mcstats import assert_consistent
 from test_score_gradient import gradient_medium, gradient_scene, pixel_weights
 
 from cloudct.mc.cameras import Camera
+from cloudct.mc.detector_sampling import DEFAULT_AIM_FRACTION
 from cloudct.mc.gradient import score_function_gradient
 from cloudct.mc.render import kernel_inputs, render_batches
 from cloudct.mc.scene import Scene
@@ -145,16 +146,23 @@ def test_correction_factor_is_exactly_one_under_the_reference(case):
 # ----------------------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("aim", [0.0, DEFAULT_AIM_FRACTION])
 @pytest.mark.parametrize("change", ["voxelwise", "scaled"])
-def test_recycled_images_agree_with_fresh_images(case, change):
+def test_recycled_images_agree_with_fresh_images(case, change, aim):
     """Voxel-wise factors 0.9-1.1 (the images hardly move), and all cloud scaled by 1.25
-    (they move by many standard errors, so the correction factor must do its work)."""
+    (they move by many standard errors, so the correction factor must do its work). Paths
+    aimed at the cameras (``aim`` > 0) keep their reference weights f / q in the store and
+    are compared with fresh aimed paths; the plain sampler also shows that the comparison
+    has the power to see a store without its correction factors."""
     name, medium, scene, rr = case
     target = perturbed(medium) if change == "voxelwise" else scaled(medium, 1.25)
-    store = record_paths(medium, scene, photons=400_000, seed=1, batches=BATCHES, **rr)
+    store = record_paths(
+        medium, scene, photons=400_000, seed=1, batches=BATCHES, aim_fraction=aim, **rr
+    )
     recycled, info = replay_images(store, target)
     fresh, _ = render_batches(
-        target, scene, photons=400_000, seed=2, batches=BATCHES, progress=False, **rr
+        target, scene, photons=400_000, seed=2, batches=BATCHES, progress=False,
+        aim_fraction=aim, **rr
     )
     assert 0.2 < info["ess_fraction"] < 1.0
     mean, fresh_mean = recycled.mean(axis=0), fresh.mean(axis=0)
@@ -166,7 +174,7 @@ def test_recycled_images_agree_with_fresh_images(case, change):
     if change == "voxelwise":
         # power: a common bias of 3% would show as a pooled z-score above 6
         assert 0.03 * fresh_mean[lit].sum() / np.sqrt(np.sum(sigma**2)) > 6.0
-    else:
+    elif aim == 0.0:
         # without its correction factors the store fails the same comparison
         at_reference = replay_images(store, medium)[0]
         se_ref = at_reference.std(axis=0, ddof=1) / np.sqrt(BATCHES)
@@ -177,7 +185,7 @@ def test_recycled_images_agree_with_fresh_images(case, change):
             )
     assert_consistent(
         mean[lit], se[lit], fresh_mean[lit], BATCHES, reference_error=fresh_se[lit],
-        label=f"recycled vs fresh images ({name}, {change})",
+        label=f"recycled vs fresh images ({name}, {change}, aim {aim})",
     )
 
 

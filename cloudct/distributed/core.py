@@ -603,7 +603,8 @@ def render_batch_means(
     info = dict(
         method=method, photons=per_batch * batches, seed=seed, batches=batches,
         events=int(events.sum()), wall_time=stats.wall_time, rr_depth=rr_depth,
-        rr_survival=rr_survival, backend=stats.backend, **stats_info(stats),
+        rr_survival=rr_survival, aim_fraction=k.cams.aim_fraction, backend=stats.backend,
+        **stats_info(stats),
     )
     return values / per_batch, info
 
@@ -621,7 +622,8 @@ def gradient_batch_means(
         progress=progress, desc="gradient",
     )
     info = {"photons": per_batch * batches, "events": int(events.sum()),
-            "wall_time": stats.wall_time, "backend": stats.backend, **stats_info(stats)}
+            "wall_time": stats.wall_time, "backend": stats.backend,
+            "aim_fraction": k.cams.aim_fraction, **stats_info(stats)}
     return values / per_batch, info
 
 

@@ -71,16 +71,25 @@ class CameraArrays(NamedTuple):
     pixel_area: np.ndarray  # float64[nview]: pixel area on the unit-distance image plane
     nrows: int
     ncols: int
+    #: share of forward scattering events that aim their new direction at a camera
+    #: (:mod:`cloudct.mc.detector_sampling`); 0: plain phase-function sampling
+    aim_fraction: float = 0.0
 
 
-def camera_arrays(cameras: list[Camera]) -> CameraArrays:
-    """Gather cameras into kernel arrays; all cameras must share the image size."""
+def camera_arrays(cameras: list[Camera], aim_fraction: float = 0.0) -> CameraArrays:
+    """Gather cameras into kernel arrays; all cameras must share the image size.
+    ``aim_fraction`` in [0, 1) is the forward estimator's detector directional importance
+    sampling (:mod:`cloudct.mc.detector_sampling`)."""
     if not cameras:
         raise ValueError("at least one camera is needed")
     shapes = {(c.nrows, c.ncols) for c in cameras}
     if len(shapes) != 1:
         raise ValueError(f"all cameras must have the same image size, got {sorted(shapes)}")
     nrows, ncols = shapes.pop()
+    if not 0.0 <= aim_fraction < 1.0:
+        raise ValueError(
+            f"aim_fraction must be in [0, 1) (0 switches aiming off), got {aim_fraction}"
+        )
     frames = [c.frame() for c in cameras]
     half_width = np.array([np.tan(np.radians(c.fov) / 2.0) for c in cameras])
     half_height = half_width * nrows / ncols
@@ -94,6 +103,7 @@ def camera_arrays(cameras: list[Camera]) -> CameraArrays:
         pixel_area=(2.0 * half_width / ncols) * (2.0 * half_height / nrows),
         nrows=nrows,
         ncols=ncols,
+        aim_fraction=float(aim_fraction),
     )
 
 

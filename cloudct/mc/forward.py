@@ -3,9 +3,10 @@
 Seed paper Sec. 3.4: a photon enters on a sunlit face (:mod:`cloudct.mc.sun`) with the
 weight that makes the estimate absolute, flies a distance sampled by exact inversion of the
 optical depth (Eq. 32), scatters with the mixture phase function (Eq. 33 and
-:mod:`cloudct.mc.events`) and carries the effective albedo as a weight. At every scattering
-event, and at every reflection by the Lambertian ground, it sends a local estimate to every
-camera (Eqs. 36-39):
+:mod:`cloudct.mc.events`), a share of its directions aimed at the cameras
+(:mod:`cloudct.mc.detector_sampling`), and carries the effective albedo as a weight. At
+every scattering event, and at every reflection by the Lambertian ground, it sends a local
+estimate to every camera (Eqs. 36-39):
 
     weight * albedo * f_p(x, cos theta_{b,d}) * T(x, x_d) / (r^2 Omega_pixel)
 
@@ -24,7 +25,8 @@ from numba import njit, prange
 
 from cloudct.mc.accumulate import add_to
 from cloudct.mc.cameras import project
-from cloudct.mc.events import lambertian_bounce, russian_roulette, scatter
+from cloudct.mc.detector_sampling import scatter_aimed
+from cloudct.mc.events import lambertian_bounce, russian_roulette
 from cloudct.mc.random import DOMAIN_FORWARD, stream_start, uniform
 from cloudct.mc.sun import sample_entry_point
 from cloudct.mc.traversal import (
@@ -274,7 +276,10 @@ def trace_photon(
                     weight, -1.0, mode, image, residual, gradient, trail,
                 )
             vx, vy, vz = ux, uy, uz
-            ux, uy, uz, state = scatter(grid, bank, ix, iy, iz, ux, uy, uz, state)
+            ux, uy, uz, aimed, state = scatter_aimed(
+                grid, bank, cams, ix, iy, iz, px, py, pz, ux, uy, uz, state
+            )
+            weight *= aimed
             if mode == GRADIENT:
                 # the sampled vertex term belongs to the scores of all later events
                 mu = vx * ux + vy * uy + vz * uz

@@ -48,11 +48,16 @@ def score_function_gradient(
     batches: int = 32,
     rr_depth: int = 100,
     rr_survival: float = 0.95,
+    aim_fraction: float | None = None,
     progress: bool | None = None,
     backend: str = "cpu",
     client=None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """sum_d residual_d dI_d / d beta_cloud per voxel by the path score function.
+
+    ``aim_fraction``: the forward paths' detector directional importance sampling, as for
+    :func:`cloudct.mc.render.render` (0: off); the score terms are the same, the weights
+    f / q make the estimate unbiased (:mod:`cloudct.mc.detector_sampling`).
 
     ``backend``: ``"cpu"``, ``"cuda"`` or ``"auto"`` (:mod:`cloudct.mc.backend`).
     ``client``: a Dask client, address or executor to trace the batches on its workers
@@ -63,7 +68,7 @@ def score_function_gradient(
     """
     check_sampling(photons, batches, rr_depth, rr_survival)
     residual = check_residual(residual, scene)
-    k = kernel_inputs(medium, scene)
+    k = kernel_inputs(medium, scene, aim_fraction)
     per_batch = math.ceil(int(photons) / batches)
     if client is not None:
         from cloudct.distributed.core import gradient_batch_means
@@ -87,7 +92,7 @@ def score_function_gradient(
         max_rounds=run.max_rounds,
     )
     info = {"photons": per_batch * batches, "events": int(events.sum()), "wall_time": wall,
-            "backend": backend}
+            "backend": backend, "aim_fraction": k.cams.aim_fraction}
     return (*mean_and_std_error(gradients / per_batch), info)
 
 
@@ -107,7 +112,7 @@ def _camera_gradient(
     """The camera-side estimators' common host side (see :func:`drt_gradient`)."""
     check_sampling(samples_per_pixel, batches, rr_depth, rr_survival)
     residual = check_residual(residual, scene)
-    k = kernel_inputs(medium, scene)
+    k = kernel_inputs(medium, scene, aim_fraction=0.0)  # camera paths aim at no camera
     pixels = int(np.count_nonzero(residual))
     table = pixel_table(residual, pixel_sampling)
     # per batch: samples of each pixel (uniform), or as many samples in all (table)

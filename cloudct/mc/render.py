@@ -26,13 +26,14 @@ from tqdm.auto import tqdm
 
 from cloudct.mc.backend import backward_runner, forward_runner, resolve_backend
 from cloudct.mc.cameras import CameraArrays, camera_arrays
+from cloudct.mc.detector_sampling import DEFAULT_AIM_FRACTION
 from cloudct.mc.forward import RENDER
 from cloudct.mc.scene import Scene, check_scene, periodic_copy_ranges, single_cloud_scene
 from cloudct.mc.sun import SunArrays, sun_arrays
 from cloudct.medium import cell_edges, is_optical, load_medium, validate_medium
 from cloudct.physics.mixing import OpticalGrid
 from cloudct.physics.optics import kernel_arrays, to_optical
-from cloudct.physics.phase import PhaseBank
+from cloudct.physics.phase import TABULATED, PhaseBank
 
 RADIANCE_UNITS = "1"  # in units of the solar irradiance perpendicular to the rays, per sr
 METHODS = ("forward", "backward")
@@ -48,6 +49,7 @@ def render(
     batches: int = 32,
     rr_depth: int = 100,
     rr_survival: float = 0.95,
+    aim_fraction: float | None = None,
     progress: bool | None = None,
     backend: str = "cpu",
     client=None,
@@ -72,6 +74,14 @@ def render(
     rr_depth, rr_survival
         Russian roulette: from vertex ``rr_depth`` on a path survives each vertex with
         probability ``rr_survival`` (medium-independent, unbiased).
+    aim_fraction
+        Forward: the share of scattering events whose new direction is drawn around the
+        direction to a camera that sees them, with the weight that keeps the images
+        unbiased (detector directional importance sampling,
+        :mod:`cloudct.mc.detector_sampling`). It tames the fireflies of peaked (Mie) phase
+        functions; 0 switches it off; None (default): 0.1 with tabulated (Mie) phase
+        functions, else 0 (:func:`default_aim_fraction`). The backward estimator ignores
+        it.
     progress
         Show a progress bar (None: only on a terminal).
     backend
@@ -84,8 +94,8 @@ def render(
     """
     batch_means, info = render_batches(
         medium, scene, photons=photons, method=method, seed=seed, batches=batches,
-        rr_depth=rr_depth, rr_survival=rr_survival, progress=progress, backend=backend,
-        client=client,
+        rr_depth=rr_depth, rr_survival=rr_survival, aim_fraction=aim_fraction,
+        progress=progress, backend=backend, client=client,
     )
     radiance = batch_means.mean(axis=0)
     std_error = batch_means.std(axis=0, ddof=1) / math.sqrt(batches)
@@ -102,6 +112,7 @@ def render_batches(
     batches: int = 32,
     rr_depth: int = 100,
     rr_survival: float = 0.95,
+    aim_fraction: float | None = None,
     progress: bool | None = None,
     backend: str = "cpu",
     client=None,
@@ -111,7 +122,7 @@ def render_batches(
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     check_sampling(photons, batches, rr_depth, rr_survival)
-    k = kernel_inputs(medium, scene)
+    k = kernel_inputs(medium, scene, aim_fraction if method == "forward" else 0.0)
     per_batch = math.ceil(int(photons) / batches)
     if client is not None:
         from cloudct.distributed.core import render_batch_means
@@ -142,7 +153,7 @@ def render_batches(
     info = dict(
         method=method, photons=per_batch * batches, seed=seed, batches=batches,
         events=int(events.sum()), wall_time=wall, rr_depth=rr_depth, rr_survival=rr_survival,
-        backend=backend,
+        aim_fraction=k.cams.aim_fraction, backend=backend,
     )
     return images / per_batch, info
 
@@ -182,23 +193,37 @@ class KernelInputs(NamedTuple):
     edges: tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
-def kernel_inputs(medium: xr.Dataset, scene: Scene) -> KernelInputs:
-    """Validate a medium and a scene and gather them into kernel arrays."""
+def kernel_inputs(
+    medium: xr.Dataset, scene: Scene, aim_fraction: float | None = None
+) -> KernelInputs:
+    """Validate a medium and a scene and gather them into kernel arrays (``aim_fraction``:
+    the forward estimator's detector directional importance sampling, see
+    :mod:`cloudct.mc.detector_sampling`; 0 switches it off, None chooses it by the optics:
+    :func:`default_aim_fraction`)."""
     validate_medium(medium)
     optical = medium if is_optical(medium) else to_optical(medium)
     grid, bank = kernel_arrays(optical)
     edges = cell_edges(optical)
     check_scene(scene, edges)
+    if aim_fraction is None:
+        aim_fraction = default_aim_fraction(bank)
     return KernelInputs(
         grid=grid,
         bank=bank,
-        cams=camera_arrays(scene.cameras),
+        cams=camera_arrays(scene.cameras, aim_fraction),
         copies=periodic_copy_ranges(scene, edges),
         sun=sun_arrays(scene.sun, edges, scene.periodic),
         periodic=scene.periodic,
         ground=-1.0 if scene.ground_albedo is None else float(scene.ground_albedo),
         edges=edges,
     )
+
+
+def default_aim_fraction(bank: PhaseBank) -> float:
+    """The aim fraction used when none is given: :data:`DEFAULT_AIM_FRACTION` when a phase
+    function is tabulated (Mie optics, whose diffraction peak makes fireflies), else 0
+    (Henyey-Greenstein and Rayleigh: measured in docs/benchmarks.md, "Mie optics")."""
+    return DEFAULT_AIM_FRACTION if np.any(bank.kind == TABULATED) else 0.0
 
 
 def run_in_rounds(
@@ -324,7 +349,8 @@ def _cli_render(args: argparse.Namespace) -> int:
                backend=args.backend, client=client)
         images = render(
             medium, scene, photons=args.photons, method=args.method, seed=args.seed,
-            batches=args.batches, progress=None, backend=args.backend, client=client,
+            batches=args.batches, aim_fraction=args.aim_fraction, progress=None,
+            backend=args.backend, client=client,
         )
     finally:
         if client is not None:
@@ -388,6 +414,10 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=METHODS, default="forward")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--batches", type=int, default=32)
+    p.add_argument("--aim-fraction", type=float, default=None, metavar="A",
+                   help="forward: share of scattering directions aimed at the cameras "
+                   "(unbiased; tames Mie fireflies). 0 switches it off; default 0.1 with Mie "
+                   "(tabulated) phase functions, else 0")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     add_distributed_options(p)
     p.set_defaults(func=_cli_render)

@@ -17,9 +17,11 @@ Per record, under a medium M (``segment_term``, ``direction_term``):
     direction term log f_p,mixture(x_k, d_k . d_{k+1})   (SCATTER followed by a record)
 
 The source, the Lambertian bounce and the Russian roulette do not depend on the medium,
-so log r = sum over records of (term under M_t - term under M_ref). The local estimate at
-event e uses the prefix ratio r_e: the segment terms up to e and the direction terms of
-the vertices before e.
+so log r = sum over records of (term under M_t - term under M_ref). Directions aimed at
+the cameras (:mod:`cloudct.mc.detector_sampling`) were drawn from q, not f: each SCATTER
+record keeps its reference weight f / q, a factor of the path's weight like an albedo.
+The local estimate at event e uses the prefix ratio r_e: the segment terms up to e and
+the direction terms of the vertices before e.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from numba import njit, prange
 
 from cloudct.mc.accumulate import add_to
 from cloudct.mc.cameras import project
+from cloudct.mc.detector_sampling import aimed_weight
 from cloudct.mc.forward import (
     CLOUD,
     COUNT,
@@ -66,6 +69,8 @@ class StoreArrays(NamedTuple):
     voxel: np.ndarray  # int32/int64[nrec]: flat voxel index (ix * ny + iy) * nz + iz
     seg_ref: np.ndarray  # float64[nrec]: segment term under the reference medium
     dir_ref: np.ndarray  # float64[nrec]: direction term under the reference medium
+    aim_weight: np.ndarray  # float64[nrec]: f / q of the direction sampled at a SCATTER
+    # record under the reference (detector directional importance sampling; else 1)
     crossing_start: np.ndarray  # int64[nrec + 1] ("crossings" storage; else int64[1])
     crossing_voxel: np.ndarray  # int32/int64[ncross]: flat voxel of each crossing
     crossing_length: np.ndarray  # float64[ncross]: length inside it, km
@@ -245,10 +250,11 @@ def replay_path(
     """Re-evaluate stored path ``p`` under ``grid`` (the current medium M_t).
 
     Event e (a SCATTER or GROUND record) sends local estimates with the weight
-    r_e x (source power x effective albedos of M_t x ground albedos x roulette factors),
-    r_e the prefix correction factor. RENDER adds them to ``image``. GRADIENT (Eq. 53)
-    deposits each event's own score terms (connection segment, vertex at the camera
-    angle) through :func:`local_estimate`, keeps S_e in ``scratch``, and after the path
+    r_e x (source power x effective albedos of M_t x ground albedos x roulette factors x
+    the stored aiming weights f / q), r_e the prefix correction factor. RENDER adds them
+    to ``image``. GRADIENT (Eq. 53) deposits each event's own score terms (connection
+    segment, vertex at the camera angle) through :func:`local_estimate`, keeps S_e in
+    ``scratch``, and after the path
     walks it backwards: segment k gets -W_k l with W_k = sum_{e >= k} S_e and the sampled
     vertex k the term of Eq. (49) weighted by sum_{e > k} S_e, as in
     :func:`cloudct.mc.forward.trace_photon`, in one pass over the camera connections.
@@ -297,6 +303,7 @@ def replay_path(
         if k + 1 < z:
             if kind == SCATTER:
                 log_r += direction_term(grid, bank, S, k) - S.dir_ref[k]
+                weight *= S.aim_weight[k]
             if depth >= rr_depth:
                 weight *= inv_survival
     if mode == GRADIENT and total != 0.0:
@@ -396,8 +403,14 @@ def log_ratio_batches(grid, bank, beta, S, use_crossings, periodic, per_batch, l
 
 
 @njit(parallel=True, cache=True)
-def reference_terms(grid, bank, beta, S, use_crossings, periodic, per_batch, seg_out, dir_out):
-    """The segment and direction terms of every record under ``grid`` (the reference)."""
+def reference_terms(
+    grid, bank, cams, beta, S, use_crossings, periodic, per_batch, seg_out, dir_out, aim_out
+):
+    """The segment and direction terms of every record under ``grid`` (the reference), and
+    the weight f / q of each sampled direction (:func:`aimed_weight`, with ``cams``'s aim
+    fraction: the one the paths were traced with)."""
+    ny = grid.y_edges.size - 1
+    nz = grid.z_edges.size - 1
     nbatch = S.slot.size // per_batch
     for b in prange(nbatch):
         for k in range(per_batch):
@@ -406,12 +419,20 @@ def reference_terms(grid, bank, beta, S, use_crossings, periodic, per_batch, seg
             z = S.path_start[p + 1]
             seg_out[a] = 0.0
             dir_out[a] = 0.0
+            aim_out[a] = 1.0
             for r in range(a + 1, z):
                 seg_out[r] = segment_term(grid, beta, S, r, use_crossings, periodic)
+                dir_out[r] = 0.0
+                aim_out[r] = 1.0
                 if S.kind[r] == SCATTER and r + 1 < z:
                     dir_out[r] = direction_term(grid, bank, S, r)
-                else:
-                    dir_out[r] = 0.0
+                    ix, iy, iz = decode_voxel(S.voxel[r], ny, nz)
+                    aim_out[r] = aimed_weight(
+                        grid, bank, cams, ix, iy, iz, S.position[0, r], S.position[1, r],
+                        S.position[2, r], S.direction[0, r], S.direction[1, r],
+                        S.direction[2, r], S.direction[0, r + 1], S.direction[1, r + 1],
+                        S.direction[2, r + 1],
+                    )
 
 
 # ----------------------------------------------------------------------------------------

@@ -66,8 +66,8 @@ STORAGE = ("auto", "connections", "crossings", "lean")
 AUTO_CONNECTIONS_BUDGET = 2 * 2**30
 
 #: Bytes of one record besides the voxel index: position and direction (6 float64),
-#: length, the two reference terms (3 float64) and the kind (int8).
-RECORD_BYTES = 6 * 8 + 3 * 8 + 1
+#: length, the two reference terms, the aiming weight (4 float64) and the kind (int8).
+RECORD_BYTES = 6 * 8 + 4 * 8 + 1
 #: Bytes of one stored path: CSR offset, storage slot and photon index (int64 each).
 PATH_BYTES = 3 * 8
 #: Bytes of one camera connection besides its crossings: pixel (int32), cosine,
@@ -229,6 +229,7 @@ def record_paths(
     first_batch: int = 0,
     nbatch: int | None = None,
     variable: np.ndarray | None = None,
+    aim_fraction: float | None = None,
 ) -> PathStore:
     """Sample ``photons`` forward paths under ``medium`` (the reference) and store them.
 
@@ -245,6 +246,10 @@ def record_paths(
 
     ``variable`` (bool[x, y, z], default: every voxel) marks the voxels whose extinction
     the re-evaluations may change; "connections" storage keeps only their crossings.
+
+    ``aim_fraction``: the paths' detector directional importance sampling, as for
+    :func:`cloudct.mc.render.render`; each scattering record keeps its weight f / q under
+    the reference (``StoreArrays.aim_weight``).
     """
     whole = nbatch is None
     nbatch = int(batches) - int(first_batch) if whole else int(nbatch)
@@ -263,7 +268,7 @@ def record_paths(
     if memory_budget is not None and not memory_budget > 0:
         raise ValueError(f"memory_budget must be a positive number of bytes, got {memory_budget}")
     start_time = time.perf_counter()
-    k = kernel_inputs(medium, scene)
+    k = kernel_inputs(medium, scene, aim_fraction)
     shape = k.grid.extinction.shape[1:]
     if variable is not None:
         variable = np.asarray(variable)
@@ -315,7 +320,8 @@ def record_paths(
     )
     arrays = StoreArrays(
         path_start, slot, record.position, record.direction, record.optical_depth, record.kind,
-        record.voxel, np.empty(nrec), np.empty(nrec), *empty_cross, *empty_connections,
+        record.voxel, np.empty(nrec), np.empty(nrec), np.empty(nrec), *empty_cross,
+        *empty_connections,
     )
 
     # segment lengths (from the sampled optical depths) and crossing counts
@@ -363,8 +369,8 @@ def record_paths(
             frozen = beta[~flat_variable]
     # the reference medium's terms, computed as every re-evaluation computes them
     reference_terms(
-        k.grid, k.bank, beta, arrays, chosen != "lean", k.periodic, per_batch,
-        arrays.seg_ref, arrays.dir_ref,
+        k.grid, k.bank, k.cams, beta, arrays, chosen != "lean", k.periodic, per_batch,
+        arrays.seg_ref, arrays.dir_ref, arrays.aim_weight,
     )
     store = PathStore(
         arrays=arrays,
@@ -379,6 +385,7 @@ def record_paths(
         storage=chosen,
         info={
             "record_time": 0.0, "memory_budget": memory_budget, "first_batch": int(first_batch),
+            "aim_fraction": k.cams.aim_fraction,
         },
         variable=None if frozen is None else variable.copy(),
         frozen_extinction=frozen,
@@ -569,6 +576,7 @@ def sort_paths(store: PathStore) -> PathStore:
         voxel=a.voxel[rec],
         seg_ref=a.seg_ref[rec],
         dir_ref=a.dir_ref[rec],
+        aim_weight=a.aim_weight[rec],
         crossing_start=crossing_start,
         crossing_voxel=crossing_voxel,
         crossing_length=crossing_length,

@@ -1,0 +1,100 @@
+"""Detector directional importance sampling: scattering directions aimed at the cameras.
+
+Why: a local estimate is proportional to the phase function at the angle between the
+photon's incoming direction and the direction to the camera. A Mie phase function has a
+diffraction peak of order 10^3 per sr, so the rare events whose incoming direction happens
+to point at a camera carry a pixel (fireflies). This is the detector directional importance
+sampling (DDIS) of MYSTIC's VROOM (Buras and Mayer 2011, JQSRT 112, Sec. 3.2).
+
+What: at a forward scattering event in voxel x, the new direction w is drawn from the
+mixture density
+
+    q(w) = (1 - a) f(v . w) + a / M  sum_{c sees x} f(d_c . w),
+
+f the voxel's mixture phase function (Eq. 5 of the seed paper), v the incoming direction,
+d_c the unit vector from x towards camera c's pinhole, M the number of cameras whose image
+holds x and ``a`` the aim fraction (``CameraArrays.aim_fraction``). The second term is the
+phase function turned to point at a camera: it is sampled exactly by the usual sampler about
+d_c instead of v. The path weight is multiplied by f(v . w) / q(w) <= 1 / (1 - a), so every
+estimate stays unbiased: a direction that now points at a camera often carries a small
+weight, and the next event's local estimate, f times that weight, is bounded by about
+f(v . w) M / a instead of the peak of f. Where no camera sees x, q = f and nothing changes.
+
+Gradients: the path-space integrand is unchanged, only the sampling density is new, so the
+score function of a path (seed paper Eq. 49) keeps its terms and the weight f / q is a
+constant factor of the estimate. Path recycling keeps the reference factor f / q of each
+stored vertex (:mod:`cloudct.recycling.kernels`).
+
+With ``aim_fraction = 0`` no random number is drawn beyond the plain sampler's, so the
+paths, and the images for a seed, are exactly those of the plain forward estimator.
+"""
+
+from __future__ import annotations
+
+from numba import njit
+
+from cloudct.mc.cameras import project
+from cloudct.mc.events import scatter
+from cloudct.mc.random import uniform
+from cloudct.physics.mixing import mixture_phase_function
+
+#: Default share of forward scattering events that aim their new direction at a camera.
+DEFAULT_AIM_FRACTION = 0.1
+
+
+@njit(cache=True, inline="always")
+def sees(cams, view, px, py, pz):
+    """True when camera ``view``'s image holds the point (px, py, pz)."""
+    return project(cams, view, px, py, pz)[0] >= 0
+
+
+@njit(cache=True)
+def aimed_weight(grid, bank, cams, ix, iy, iz, px, py, pz, vx, vy, vz, wx, wy, wz):
+    """f(v . w) / q(w) of a direction w leaving a scattering event at (px, py, pz) in voxel
+    (ix, iy, iz) with incoming direction v (see the module documentation); 1 when aiming is
+    off or no camera sees the point."""
+    a = cams.aim_fraction
+    if a <= 0.0:
+        return 1.0
+    f = mixture_phase_function(grid, bank, ix, iy, iz, vx * wx + vy * wy + vz * wz)
+    aimed = 0.0
+    seen = 0
+    for view in range(cams.position.shape[0]):
+        row, _, cx, cy, cz, _ = project(cams, view, px, py, pz)
+        if row >= 0:
+            aimed += mixture_phase_function(grid, bank, ix, iy, iz, cx * wx + cy * wy + cz * wz)
+            seen += 1
+    if seen == 0:
+        return 1.0
+    q = (1.0 - a) * f + a * aimed / seen
+    if q <= 0.0:  # w outside the support of every component: not drawn (density 0)
+        return 0.0
+    return f / q
+
+
+@njit(cache=True)
+def scatter_aimed(grid, bank, cams, ix, iy, iz, px, py, pz, ux, uy, uz, state):
+    """New direction after a forward scattering event, drawn from q (module documentation),
+    and the weight factor f / q: ``(wx, wy, wz, factor, state)``."""
+    if cams.aim_fraction <= 0.0:
+        wx, wy, wz, state = scatter(grid, bank, ix, iy, iz, ux, uy, uz, state)
+        return wx, wy, wz, 1.0, state
+    u, state = uniform(state)
+    cx, cy, cz = ux, uy, uz
+    if u < cams.aim_fraction:
+        seen = 0
+        for view in range(cams.position.shape[0]):
+            if sees(cams, view, px, py, pz):
+                seen += 1
+        if seen > 0:
+            pick = min(int(u / cams.aim_fraction * seen), seen - 1)
+            for view in range(cams.position.shape[0]):
+                row, _, dx, dy, dz, _ = project(cams, view, px, py, pz)
+                if row >= 0:
+                    if pick == 0:
+                        cx, cy, cz = dx, dy, dz
+                        break
+                    pick -= 1
+    wx, wy, wz, state = scatter(grid, bank, ix, iy, iz, cx, cy, cz, state)
+    factor = aimed_weight(grid, bank, cams, ix, iy, iz, px, py, pz, ux, uy, uz, wx, wy, wz)
+    return wx, wy, wz, factor, state
