@@ -27,12 +27,14 @@ batches each, pooled. Reported:
 Usage::
 
     python benchmarks/mie_variance.py [--photons 1000000] [--seeds 4] [--aim 0.1]
-        [--piece-check] [--output benchmarks/results/mie_variance]
+        [--gradient-photons 1000000] [--piece-check] [--gradient-only]
+        [--output benchmarks/results/mie_variance]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -51,6 +53,7 @@ from cloudct.mc.render import render_batches  # noqa: E402
 from cloudct.mc.scene import single_cloud_scene  # noqa: E402
 from cloudct.medium import cell_edges  # noqa: E402
 from cloudct.physics.optics import to_optical  # noqa: E402
+from cloudct.retrieval.optimizers import block_mean  # noqa: E402
 from data_synth.les import bundled_single_cloud, read_les  # noqa: E402
 
 BATCHES = 32
@@ -123,46 +126,51 @@ def agreement(a: dict, b: dict) -> dict:
             "binned_lit_z_rms": float(np.sqrt(np.mean(zb_lit**2))), "binned_count": int(zb.size)}
 
 
-def gradient_noise(medium, scene, photons: int, aim: float) -> dict:
-    """Two independent score-function gradients at 0.8 x the extinction (residual from one
-    pair of high-photon renders)."""
+def gradient_noise(medium, scene, photons: int, aim: float, estimates: int = 4) -> dict:
+    """``estimates`` independent score-function gradients at 0.8 x the extinction (residual
+    from one pair of high-photon renders), over the cloudy voxels one by one and averaged
+    over 4 x 4 x 4 blocks as a coarse retrieval stage uses them. Pooled over the pairs i < j:
+    signal |g|^2 = mean g_i . g_j, noise E|n|^2 = mean |g_i - g_j|^2 / 2; the signal
+    fraction of one estimate is |g|^2 / (|g|^2 + E|n|^2), its mean cosine with another
+    the pairs' mean cos(g_i, g_j)."""
     start = medium.copy()
     start["cloud_extinction"] = 0.8 * medium["cloud_extinction"]
     truth, _ = render_batches(medium, scene, photons=4 * photons, seed=99, progress=False)
     now, _ = render_batches(start, scene, photons=4 * photons, seed=98, progress=False)
     residual = now.mean(axis=0) - truth.mean(axis=0)
+    cloudy = medium["cloud_extinction"].values > 0
     g, wall = [], 0.0
-    for seed in (11, 12):
+    for seed in range(11, 11 + estimates):
         t = time.perf_counter()
         mean, _, info = score_function_gradient(start, scene, residual, photons=photons,
                                                 seed=seed, aim_fraction=aim, progress=False)
         wall += time.perf_counter() - t
-        g.append(mean.ravel())
-    noise = 0.5 * float(np.sum((g[0] - g[1]) ** 2))
-    signal = float(g[0] @ g[1])
-    return {"signal_fraction": signal / float(np.linalg.norm(g[0]) * np.linalg.norm(g[1])),
-            "noise": noise, "signal": signal, "seconds": wall / 2,
-            "precision_per_s": 1.0 / (noise * wall / 2)}
+        g.append(mean)
+    seconds = wall / estimates
+    out = {"seconds": seconds, "estimates": estimates}
+    for block in (1, 4):
+        v = [block_mean(x, cloudy, block)[cloudy] for x in g]
+        pairs = [(i, j) for i in range(estimates) for j in range(i + 1, estimates)]
+        signal = float(np.mean([v[i] @ v[j] for i, j in pairs]))
+        noise = float(np.mean([0.5 * np.sum((v[i] - v[j]) ** 2) for i, j in pairs]))
+        out[f"block{block}"] = {
+            "signal_fraction": signal / (signal + noise),
+            "mean_cosine": float(np.mean([v[i] @ v[j] / np.linalg.norm(v[i])
+                                          / np.linalg.norm(v[j]) for i, j in pairs])),
+            "noise": noise, "signal": signal, "snr_per_s": signal / (noise * seconds),
+        }
+    return out
 
 
 def piece_check() -> dict:
     """The --piece-check comparison (module documentation)."""
     sys.path.insert(0, str(HERE.parent / "tests"))
-    from test_detector_sampling import piece_microphysics
+    from test_detector_sampling import piece_microphysics, scene_of_piece
 
-    from cloudct.mc.cameras import Camera
     from cloudct.mc.render import render
-    from cloudct.mc.scene import Scene
-    from cloudct.mc.sun import Sun
 
     medium = to_optical(piece_microphysics(), phase="mie")
-    lo = np.array([float(medium[c][0]) for c in "xyz"]) - 0.01 * np.array([1, 1, 2])
-    hi = np.array([float(medium[c][-1]) for c in "xyz"]) + 0.01 * np.array([1, 1, 2])
-    c = tuple((lo + hi) / 2)
-    cams = [Camera((c[0], c[1], 2.0), c, (0, 1, 0), fov=24.0, nrows=16, ncols=16),
-            Camera((c[0] + 0.8, c[1] - 0.5, 1.8), c, fov=30.0, nrows=16, ncols=16),
-            Camera((c[0] - 0.7, c[1] + 0.4, 1.7), c, fov=30.0, nrows=16, ncols=16)]
-    scene = Scene(cams, Sun(zenith=20.0, azimuth=60.0), "open")
+    scene = scene_of_piece(medium)
     plain = [binned(render_batches(medium, scene, photons=3_200_000, seed=s, batches=64,
                                    aim_fraction=0.0, progress=False)[0]) for s in (11, 12, 13, 14)]
     aimed = binned(render_batches(medium, scene, photons=3_200_000, seed=7, batches=64,
@@ -222,12 +230,17 @@ def markdown(result: dict) -> str:
     lines += markdown_table(["scene", "optics", "max |z| view means", "mean z 4x4 bins",
                              "rms z 4x4 bins", "rms z lit bins", "bins"], rows)
     if "gradient" in result:
-        lines += ["", "Score-function gradient at 0.8 x the true extinction (single cloud):", ""]
-        rows = [[optics, label, f"{g['signal_fraction']:.3f}", f"{g['seconds']:.1f}",
-                 f"{g['precision_per_s']:.3g}"]
+        lines += ["", "Score-function gradient at 0.8 x the true extinction (single cloud, "
+                  f"{result['gradient_photons']} photons per estimate):", ""]
+        rows = [[optics, label, f"{g['seconds']:.1f}"]
+                + [f"{g[f'block{b}'][k]:.3g}" for b in (1, 4)
+                   for k in ("signal_fraction", "mean_cosine", "snr_per_s")]
                 for optics, d in result["gradient"].items() for label, g in d.items()]
-        lines += markdown_table(["optics", "sampling", "signal fraction cos(g1, g2)",
-                                 "s per estimate", "precision per s"], rows)
+        lines += markdown_table(["optics", "sampling", "s per estimate",
+                                 "signal fraction, voxels", "mean cos, voxels",
+                                 "signal / (noise x s), voxels", "signal fraction, 4^3 blocks",
+                                 "mean cos, 4^3 blocks", "signal / (noise x s), 4^3 blocks"],
+                                rows)
     if "piece" in result:
         p = result["piece"]
         lines += ["", f"Piece check ({p['bins']} lit 4x4 bins):", ""]
@@ -240,17 +253,32 @@ def markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def gradients(media: dict, scene, args) -> dict:
+    return {optics: {label: gradient_noise(media[optics], scene, args.gradient_photons, a)
+                     for label, a in (("plain", 0.0), ("aimed", args.aim))}
+            for optics in ("hg", "mie")}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--photons", type=int, default=1_000_000)
     parser.add_argument("--seeds", type=int, default=4)
     parser.add_argument("--aim", type=float, default=0.1)
-    parser.add_argument("--gradient-photons", type=int, default=200_000)
+    parser.add_argument("--gradient-photons", type=int, default=1_000_000)
     parser.add_argument("--piece-check", action="store_true")
+    parser.add_argument("--gradient-only", action="store_true",
+                        help="recompute only the gradient part of an existing --output")
     parser.add_argument("--output", default=str(HERE / "results" / "mie_variance"))
     args = parser.parse_args()
+    if args.gradient_only:
+        result = json.loads(Path(args.output).with_suffix(".json").read_text())
+        media = scenes()["single_cloud"]
+        result["gradient_photons"] = args.gradient_photons
+        result["gradient"] = gradients(media, scene_of(media["hg"]), args)
+        write_json_and_markdown(result, args.output, markdown)
+        return
     result = {**run_header(), "photons": args.photons, "seeds": args.seeds, "aim": args.aim,
-              "scenes": {}}
+              "gradient_photons": args.gradient_photons, "scenes": {}}
     for name, media in scenes().items():
         scene = scene_of(media["hg"])
         render_batches(media["mie"], scene, photons=64, progress=False)  # JIT warm-up
@@ -267,10 +295,7 @@ def main() -> None:
                   out[optics]["aimed"]["efficiency"], flush=True)
         result["scenes"][name] = out
         if name == "single_cloud" and args.gradient_photons > 0:
-            result["gradient"] = {
-                optics: {label: gradient_noise(media[optics], scene, args.gradient_photons, a)
-                         for label, a in (("plain", 0.0), ("aimed", args.aim))}
-                for optics in ("hg", "mie")}
+            result["gradient"] = gradients(media, scene, args)
     if args.piece_check:
         result["piece"] = piece_check()
     write_json_and_markdown(result, args.output, markdown)

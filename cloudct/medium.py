@@ -23,6 +23,8 @@ import numpy as np
 import xarray as xr
 from numpy.typing import ArrayLike
 
+from cloudct.netcdf import load_netcdf
+
 #: The seed paper's defaults (CONVENTIONS.md) and the default droplet effective variance
 #: used by the Mie optics when a microphysical medium has no ``veff``.
 DEFAULT_AIR_EXTINCTION = 0.04
@@ -742,9 +744,12 @@ def load_medium(path: str | os.PathLike) -> xr.Dataset:
 
     Raises:
         FileNotFoundError: no such file.
-        MediumError: the file does not hold a valid medium.
+        InputFileError: the file cannot be read as netCDF (truncated, another format).
+        MediumError: the file does not hold a valid medium (the message names the file).
     """
-    with xr.open_dataset(path, engine="netcdf4") as stored:
-        ds = stored.load()
-    validate_medium(ds)
+    ds = load_netcdf(path, "medium")
+    try:
+        validate_medium(ds)
+    except MediumError as err:
+        raise MediumError(f"medium file {path}: {err}") from None
     return ds

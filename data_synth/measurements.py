@@ -42,8 +42,9 @@ import xarray as xr
 
 from cloudct.mc.cameras import cameras_from_dataset
 from cloudct.mc.render import RADIANCE_UNITS, render, single_cloud_medium
-from cloudct.mc.scene import Scene, single_cloud_scene
+from cloudct.mc.scene import Scene, load_scene, single_cloud_scene
 from cloudct.medium import cell_edges, is_optical, load_medium, validate_medium
+from cloudct.netcdf import load_netcdf
 from cloudct.physics.mie import DEFAULT_WAVELENGTH
 from cloudct.physics.optics import to_optical
 
@@ -295,11 +296,15 @@ def load_measurements(path: str | os.PathLike) -> xr.Dataset:
 
     Raises:
         FileNotFoundError: no such file.
-        MeasurementError: the file does not hold a valid measurement set.
+        InputFileError: the file cannot be read as netCDF (truncated, another format).
+        MeasurementError: the file does not hold a valid measurement set (the message names
+            the file).
     """
-    with xr.open_dataset(path, engine="netcdf4") as stored:
-        ds = stored.load()
-    validate_measurements(ds)
+    ds = load_netcdf(path, "measurement")
+    try:
+        validate_measurements(ds)
+    except MeasurementError as err:
+        raise MeasurementError(f"measurement file {path}: {err}") from None
     return ds
 
 
@@ -308,7 +313,7 @@ def _cli_synth(args: argparse.Namespace) -> int:
     if args.read_noise is not None and args.noise_electrons is None:
         raise ValueError("--read-noise needs --noise-electrons (the signal level)")
     medium = single_cloud_medium() if args.medium is None else load_medium(args.medium)
-    scene = None if args.scene is None else Scene.from_dataset(xr.load_dataset(args.scene))
+    scene = None if args.scene is None else load_scene(args.scene)
     noise = None
     if args.noise_electrons is not None:
         noise = NoiseModel(args.noise_electrons, read_noise=args.read_noise or 0.0)

@@ -24,6 +24,7 @@ import math
 
 import numpy as np
 import pytest
+import xarray as xr
 from mcstats import assert_consistent
 from numba import njit
 from scipy import integrate
@@ -61,10 +62,11 @@ def small_droplet_piece():
     return to_optical(micro, phase="mie")
 
 
-@pytest.fixture(scope="module")
-def piece_scene(mie_piece):
-    lo = np.array([float(mie_piece[c][0]) for c in "xyz"]) - 0.01 * np.array([1, 1, 2])
-    hi = np.array([float(mie_piece[c][-1]) for c in "xyz"]) + 0.01 * np.array([1, 1, 2])
+def scene_of_piece(medium) -> Scene:
+    """Three 16 x 16 cameras around the piece (the nadir one 24 degrees wide), sun at 20
+    degrees zenith: the scene of these tests and of ``benchmarks/mie_variance.py``."""
+    lo = np.array([float(medium[c][0]) for c in "xyz"]) - 0.01 * np.array([1, 1, 2])
+    hi = np.array([float(medium[c][-1]) for c in "xyz"]) + 0.01 * np.array([1, 1, 2])
     centre = tuple((lo + hi) / 2)
     cams = [
         Camera((centre[0], centre[1], 2.0), centre, (0, 1, 0), fov=24.0, nrows=16, ncols=16),
@@ -72,6 +74,11 @@ def piece_scene(mie_piece):
         Camera((centre[0] - 0.7, centre[1] + 0.4, 1.7), centre, fov=30.0, nrows=16, ncols=16),
     ]
     return Scene(cams, Sun(zenith=20.0, azimuth=60.0), "open")
+
+
+@pytest.fixture(scope="module")
+def piece_scene(mie_piece):
+    return scene_of_piece(mie_piece)
 
 
 def binned(images: np.ndarray, n: int = 4) -> np.ndarray:
@@ -235,3 +242,21 @@ def test_aimed_and_plain_score_gradient_agree_with_mie_optics(small_droplet_piec
     assert cloudy.sum() > 100
     assert_consistent(a[cloudy], a_se[cloudy], p[cloudy], BATCHES, reference_error=p_se[cloudy],
                       label="aimed vs plain score gradient, Mie")
+
+
+def test_render_command_takes_the_aim_fraction(tmp_path, capsys):
+    from cloudct.cli import main
+    from cloudct.mc.render import single_cloud_medium
+    from cloudct.medium import save_medium
+
+    medium = tmp_path / "medium.nc"
+    save_medium(single_cloud_medium(), medium)
+    out = tmp_path / "images.nc"
+    assert main(["render", str(medium), "-o", str(out), "--photons", "256",
+                 "--aim-fraction", "0.2"]) == 0
+    assert xr.load_dataset(out).attrs["aim_fraction"] == 0.2
+    capsys.readouterr()
+    assert main(["render", str(medium), "-o", str(out), "--overwrite", "--photons", "256",
+                 "--aim-fraction", "1.5"]) == 2
+    err = capsys.readouterr().err
+    assert "aim_fraction must be in [0, 1)" in err and len(err.strip().splitlines()) == 1

@@ -28,7 +28,13 @@ from cloudct.mc.backend import backward_runner, forward_runner, resolve_backend
 from cloudct.mc.cameras import CameraArrays, camera_arrays
 from cloudct.mc.detector_sampling import DEFAULT_AIM_FRACTION
 from cloudct.mc.forward import RENDER
-from cloudct.mc.scene import Scene, check_scene, periodic_copy_ranges, single_cloud_scene
+from cloudct.mc.scene import (
+    Scene,
+    check_scene,
+    load_scene,
+    periodic_copy_ranges,
+    single_cloud_scene,
+)
 from cloudct.mc.sun import SunArrays, sun_arrays
 from cloudct.medium import cell_edges, is_optical, load_medium, validate_medium
 from cloudct.physics.mixing import OpticalGrid
@@ -333,7 +339,7 @@ def _cli_render(args: argparse.Namespace) -> int:
             np.array([e[0] for e in edges]), np.array([e[-1] for e in edges])
         )
     else:
-        scene = Scene.from_dataset(xr.load_dataset(args.scene))
+        scene = load_scene(args.scene)
     output = Path(args.output)
     if output.exists() and not args.overwrite:
         raise FileExistsError(f"{output} exists (use --overwrite)")

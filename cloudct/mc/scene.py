@@ -8,6 +8,7 @@ images would be visible.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -15,8 +16,10 @@ import xarray as xr
 
 from cloudct.mc.cameras import Camera, cameras_dataset, cameras_from_dataset, nine_camera_set
 from cloudct.mc.sun import Sun
+from cloudct.netcdf import InputFileError, load_netcdf
 
 BOUNDARIES = ("open", "periodic")
+
 
 
 @dataclass(frozen=True)
@@ -191,3 +194,13 @@ def periodic_copy_ranges(
             np.floor((pts[:, 1].max() - ye[0]) / ly),
         )
     return ranges
+
+
+def load_scene(path: str | os.PathLike) -> Scene:
+    """The scene in a netCDF file written by ``cloudct scene`` (:meth:`Scene.to_dataset`);
+    a file that cannot be read, or that holds no scene, raises one line naming it."""
+    ds = load_netcdf(path, "scene")
+    try:
+        return Scene.from_dataset(ds)
+    except (KeyError, ValueError) as err:
+        raise InputFileError(f"scene file {path} holds no valid scene: {err}") from None

@@ -12,6 +12,7 @@ from cloudct.mc.gradient import ESTIMATORS
 from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS
 from cloudct.mc.render import add_distributed_options
 from cloudct.medium import load_medium
+from cloudct.netcdf import load_netcdf, require_variables
 from cloudct.retrieval.loop import (
     AVERAGING,
     OPTIMIZERS,
@@ -98,7 +99,9 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
 def _cli_report(args: argparse.Namespace) -> int:
     from data_synth.measurements import load_measurements
 
-    result = xr.load_dataset(args.result)
+    result = load_netcdf(args.result, "result")
+    require_variables(result, ("cloud_extinction", "log_loss", "log_seconds"), "result",
+                      args.result)
     truth = load_medium(args.truth) if args.truth else None
     measurements = load_measurements(args.measurements) if args.measurements else None
     summary = write_report(result, args.output, truth=truth, measurements=measurements)

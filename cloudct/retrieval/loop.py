@@ -27,6 +27,7 @@ from cloudct.mc.gradient import ESTIMATORS, gradient_estimate
 from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS
 from cloudct.mc.scene import Scene
 from cloudct.medium import cell_edges, validate_medium
+from cloudct.netcdf import InputFileError, load_netcdf, require_variables
 from cloudct.retrieval.loss import image_loss, loss_and_gradient, pixel_weights
 from cloudct.retrieval.metrics import epsilon_delta
 from cloudct.retrieval.optimizers import (
@@ -648,7 +649,11 @@ class Retrieval:
         measurements and settings (same run id). Without recycling the resumed run repeats
         exactly what the uninterrupted run does; with recycling the path stores are not in
         the checkpoint, so the resumed run first records new paths under the current medium."""
-        ck = xr.load_dataset(path)
+        ck = load_netcdf(path, "checkpoint")
+        require_variables(ck, ("cloud_mask",), "checkpoint", path)
+        if not {"config", "run_id"} <= set(ck.attrs):
+            raise InputFileError(f"checkpoint file {path} lacks its run's settings (attributes "
+                                 "config and run_id); is it a cloudct checkpoint?")
         config_dict = json.loads(ck.attrs["config"])
         # checkpoints from before the estimator choice traced the score function
         config_dict.setdefault("estimator", ("score",) * len(config_dict["stages"]))

@@ -1,0 +1,57 @@
+"""Reading netCDF input files with one clear line when a file cannot be read.
+
+Every command reads its inputs (media, scenes, measurements, results, checkpoints) through
+:func:`load_netcdf`, so that a missing, truncated, empty or non-netCDF file ends in one
+line naming the file and what is wrong, not in a traceback from the HDF5 library.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import xarray as xr
+
+
+class InputFileError(ValueError):
+    """An input file that cannot be read as netCDF, or lacks what it must hold."""
+
+
+def load_netcdf(path: str | os.PathLike, what: str) -> xr.Dataset:
+    """The whole netCDF file at ``path``, read into memory (the file is closed).
+
+    Args:
+        path: the file.
+        what: what the file should hold ("medium", "scene", ...), for the messages.
+
+    Raises:
+        FileNotFoundError: no such file.
+        InputFileError: a directory, or a file that the netCDF library cannot read
+            (truncated, empty, or of another format).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{what} file {path} does not exist")
+    if path.is_dir():
+        raise InputFileError(f"{what} file {path} is a directory, not a netCDF file")
+    try:
+        with xr.open_dataset(path, engine="netcdf4") as stored:
+            return stored.load()
+    except (OSError, RuntimeError, ValueError) as err:
+        reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+        size = path.stat().st_size
+        raise InputFileError(
+            f"{what} file {path} ({size} bytes) cannot be read as netCDF: it may be truncated, "
+            f"empty or of another format ({reason})"
+        ) from None
+
+
+def require_variables(ds: xr.Dataset, names: list[str] | tuple[str, ...], what: str,
+                      path: str | os.PathLike) -> None:
+    """Raise :class:`InputFileError` naming the variables of ``names`` that ``ds`` (read
+    from ``path``) lacks."""
+    missing = [n for n in names if n not in ds.variables]
+    if missing:
+        raise InputFileError(
+            f"{what} file {path} lacks {', '.join(missing)}; is it a cloudct {what} file?"
+        )
