@@ -1,0 +1,175 @@
+"""What a render, a gradient and a path store cost against the voxel count and the photons.
+
+Media: from the LES cloud field ``rico122x106x39`` (20 m x 20 m x 40 m cells, all 39
+levels) with the single cloud's optics (HG g = 0.85, cloud albedo 0.99, the file's air):
+
+- 10^4 voxels: the 16 x 16 columns around the field's column of largest liquid water path;
+- 10^5 and 10^6 voxels: that piece tiled 3 x 3 and 10 x 10 times (48 x 48 and 160 x 160
+  columns), so that the cloud fraction, and the paths, stay those of the 10^4 piece and
+  the cost per photon shows what grows with the grid alone;
+- the whole field (122 x 106 columns, 5 x 10^5 voxels, 3% cloudy): a real field's mix.
+
+Scene: nine 76 x 76 cameras (zenith and a ring at 29 degrees) aimed at the box centre from
+max(2 km, 1.5 x the box's horizontal diagonal), the field of view fitted to the box, sun at
+the zenith, open boundaries. Each case runs in its own process, so that its peak resident
+memory (``ru_maxrss``) is its own; the JIT compilation (or the cache load) is excluded from
+the times by a warm-up call. Reported per case: the forward render's wall time, photons and
+path vertices per second; the score-function gradient's wall time (random residual, every
+pixel non-zero); the bytes of a path store (``record_paths``, default storage) per path and
+per event; the peak memory. ``--photon-scan``: the render's time against the photons on the
+10^5-voxel piece. Usage::
+
+    python benchmarks/cost_tables.py [--photons 200000] [--photon-scan]
+        [--output benchmarks/results/cost_tables]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE))
+
+from common import markdown_table, run_header, write_json_and_markdown  # noqa: E402
+
+#: case: tiles of the 16 x 16-column piece per side (None: the whole field)
+SIZES = {"1e4": 1, "1e5": 3, "1e6": 10, "field": None}
+PIECE = 16
+
+
+def field_piece(size: str):
+    """The medium of one case (module documentation)."""
+    import xarray as xr
+    from scenes import LES, single_cloud_optics
+
+    from data_synth.les import read_les
+
+    les = read_les(LES / "rico122x106x39.txt")
+    tiles = SIZES[size]
+    if tiles is not None:
+        lwp = les["lwc"].sum("z").values
+        i, j = np.unravel_index(int(np.argmax(lwp)), lwp.shape)
+        i0 = int(np.clip(i - PIECE // 2, 0, les.sizes["x"] - PIECE))
+        j0 = int(np.clip(j - PIECE // 2, 0, les.sizes["y"] - PIECE))
+        piece = les.isel(x=slice(i0, i0 + PIECE), y=slice(j0, j0 + PIECE))
+        dx = float(les.x[1] - les.x[0])
+        dy = float(les.y[1] - les.y[0])
+        n = PIECE * tiles
+        les = xr.Dataset(
+            {name: (piece[name].dims, np.tile(piece[name].values, (tiles, tiles, 1)),
+                    piece[name].attrs)
+             for name in piece.data_vars if piece[name].dims == ("x", "y", "z")},
+            coords={"x": ("x", float(piece.x[0]) + dx * np.arange(n), piece.x.attrs),
+                    "y": ("y", float(piece.y[0]) + dy * np.arange(n), piece.y.attrs),
+                    "z": piece.z},
+            attrs=piece.attrs,
+        )
+        for name in piece.data_vars:
+            if name not in les:
+                les[name] = piece[name]
+    return single_cloud_optics(les, f"rico122x106x39 piece {size}")
+
+
+def scene_for(medium):
+    from cloudct.mc.cameras import nine_camera_set
+    from cloudct.mc.scene import Scene
+    from cloudct.mc.sun import Sun
+    from cloudct.medium import cell_edges
+
+    edges = cell_edges(medium)
+    lo = np.array([e[0] for e in edges])
+    hi = np.array([e[-1] for e in edges])
+    distance = max(2.0, 1.5 * float(np.hypot(*(hi - lo)[:2])))
+    return Scene(nine_camera_set(lo, hi, distance=distance), Sun(0.0, 0.0), "open")
+
+
+def run_case(size: str, photons: int, gradient: bool, store: bool) -> dict:
+    """One case, in this process."""
+    from cloudct.mc.gradient import score_function_gradient
+    from cloudct.mc.render import render_batches
+    from cloudct.recycling import record_paths
+
+    medium = field_piece(size)
+    scene = scene_for(medium)
+    shape = medium["cloud_extinction"].shape
+    out = {"size": size, "shape": list(shape), "voxels": int(np.prod(shape)),
+           "cloudy_voxels": int((medium["cloud_extinction"].values > 0).sum()),
+           "photons": photons}
+    render_batches(medium, scene, photons=64, progress=False)  # JIT warm-up
+    _, info = render_batches(medium, scene, photons=photons, progress=False)
+    out.update(render_s=info["wall_time"], photons_per_s=info["photons"] / info["wall_time"],
+               vertices_per_photon=info["events"] / info["photons"],
+               vertices_per_s=info["events"] / info["wall_time"])
+    if gradient:
+        residual = np.random.default_rng(0).normal(size=(9, 76, 76))
+        score_function_gradient(medium, scene, residual, photons=64, progress=False)
+        t = time.perf_counter()
+        score_function_gradient(medium, scene, residual, photons=photons // 2, progress=False)
+        out["gradient_s_per_photon"] = (time.perf_counter() - t) / (photons // 2)
+    if store:
+        paths = max(photons // 10, 320)
+        s = record_paths(medium, scene, photons=paths)
+        out.update(store_bytes=s.nbytes, store_storage=s.storage,
+                   store_bytes_per_path=s.nbytes / s.paths, store_bytes_per_event=s.bytes_per_event)
+    out["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return out
+
+
+def in_subprocess(size: str, photons: int, gradient: bool, store: bool) -> dict:
+    code = (f"import sys, json; sys.path.insert(0, {str(HERE)!r}); import cost_tables as c; "
+            f"print('RESULT', json.dumps(c.run_case({size!r}, {photons}, {gradient}, {store})))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=True, cwd=HERE.parent)
+    line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT ")][-1]
+    return json.loads(line[len("RESULT "):])
+
+
+def markdown(result: dict) -> str:
+    rows = [[c["size"], "x".join(map(str, c["shape"])), str(c["cloudy_voxels"]),
+             f"{c['render_s']:.1f}", f"{c['photons_per_s']:.3g}",
+             f"{c['vertices_per_photon']:.1f}", f"{c['vertices_per_s']:.3g}",
+             f"{1e6 * c['gradient_s_per_photon']:.1f}",
+             f"{c['store_bytes'] / 2**20:.1f} ({c['store_storage']})",
+             f"{c['store_bytes_per_event']:.0f}", f"{c['peak_rss_mib']:.0f}"]
+            for c in result["voxels"]]
+    lines = [f"{result['photons']} photons per render (32 batches), half as many per "
+             "gradient, a tenth recorded in the path store.", ""]
+    lines += markdown_table(["voxels", "grid", "cloudy", "render s", "photons/s",
+                             "vertices/photon", "vertices/s", "gradient us/photon",
+                             "store MiB", "store B/event", "peak RSS MiB"], rows)
+    if result.get("photon_scan"):
+        lines += ["", "Render time against photons (10^5 voxels):", ""]
+        lines += markdown_table(["photons", "render s", "photons/s"],
+                                [[str(c["photons"]), f"{c['render_s']:.2f}",
+                                  f"{c['photons_per_s']:.3g}"] for c in result["photon_scan"]])
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--photons", type=int, default=200_000)
+    parser.add_argument("--photon-scan", action="store_true")
+    parser.add_argument("--output", default=str(HERE / "results" / "cost_tables"))
+    args = parser.parse_args()
+    result = {**run_header(), "photons": args.photons, "voxels": []}
+    for size in SIZES:
+        case = in_subprocess(size, args.photons, True, True)
+        print(case, flush=True)
+        result["voxels"].append(case)
+    if args.photon_scan:
+        result["photon_scan"] = [in_subprocess("1e5", p, False, False)
+                                 for p in (50_000, 200_000, 800_000)]
+    write_json_and_markdown(result, args.output, markdown)
+
+
+if __name__ == "__main__":
+    main()
