@@ -29,7 +29,10 @@ from cloudct.mc.cameras import CameraArrays, camera_arrays
 from cloudct.mc.detector_sampling import DEFAULT_AIM_FRACTION
 from cloudct.mc.forward import RENDER
 from cloudct.mc.scene import (
+    BOUNDARIES,
+    PRESETS,
     Scene,
+    build_scene,
     check_scene,
     load_scene,
     periodic_copy_ranges,
@@ -378,15 +381,27 @@ def _cli_render(args: argparse.Namespace) -> int:
 
 
 def _cli_scene(args: argparse.Namespace) -> int:
-    """``cloudct scene``: write the seed paper's nine-camera scene for a medium."""
+    """``cloudct scene``: write a nine-camera scene for a medium (preset and overrides)."""
     medium = single_cloud_medium() if args.medium is None else load_medium(args.medium)
     edges = cell_edges(medium)
-    scene = single_cloud_scene(np.array([e[0] for e in edges]), np.array([e[-1] for e in edges]))
+    scene = build_scene(
+        np.array([e[0] for e in edges]), np.array([e[-1] for e in edges]),
+        preset=args.preset, ring_zenith=args.ring_zenith, distance=args.distance,
+        npix=args.npix, fov=args.fov, sun_zenith=args.sun_zenith, sun_azimuth=args.sun_azimuth,
+        boundary=args.boundary, ground_albedo=args.ground_albedo,
+    )
     output = Path(args.output)
     if output.exists() and not args.overwrite:
         raise FileExistsError(f"{output} exists (use --overwrite)")
     scene.to_dataset().to_netcdf(output)
-    print(f"wrote {output} ({len(scene.cameras)} cameras)")
+    written = f"wrote {output} ({len(scene.cameras)} cameras)"
+    if args.figure:
+        from cloudct.mc.scene_figure import save_scene_figure
+
+        figure = save_scene_figure(scene, [e[0] for e in edges], [e[-1] for e in edges],
+                                   args.figure)
+        written += f" and {figure}"
+    print(written)
     return 0
 
 
@@ -429,10 +444,29 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cli_render)
 
     s = subparsers.add_parser(
-        "scene", help="write the seed paper's nine-camera scene for a medium",
-        description="Write a scene netCDF (nine 76x76 cameras at 2 km, sun at zenith).",
+        "scene", help="write a nine-camera scene for a medium (presets, sun, boundaries)",
+        description="Write a scene netCDF: a zenith camera and a ring of eight aimed at the "
+        "box centre. Presets: single-cloud (ring at 29 deg, 2 km, 76x76: the seed paper's "
+        "single cloud), cloud-field (33 deg, 2.16 km, 86x86: its cloud field), nadir (10 "
+        "deg, 1.2 x the box's horizontal diagonal, 128x128: wide domains); any number may "
+        "be overridden. The field of view frames the box unless given.",
     )
     s.add_argument("medium", nargs="?", help="medium netCDF (default: bundled single cloud)")
+    s.add_argument("--preset", choices=sorted(PRESETS), default="single-cloud")
+    s.add_argument("--ring-zenith", type=float, metavar="DEG", help="ring cameras' zenith angle")
+    s.add_argument("--distance", type=float, metavar="KM", help="cameras' distance from the box "
+                   "centre")
+    s.add_argument("--npix", type=int, metavar="N", help="image size, N x N pixels")
+    s.add_argument("--fov", type=float, metavar="DEG", help="full field of view (default: "
+                   "fitted to the box)")
+    s.add_argument("--sun-zenith", type=float, default=0.0, metavar="DEG")
+    s.add_argument("--sun-azimuth", type=float, default=0.0, metavar="DEG",
+                   help="direction towards the sun, degrees from +x toward +y")
+    s.add_argument("--boundary", choices=BOUNDARIES, default="open")
+    s.add_argument("--ground-albedo", type=float, metavar="A",
+                   help="Lambertian ground albedo (default: no ground)")
+    s.add_argument("--figure", metavar="PNG", help="also draw the scene (from above and "
+                   "from the side) to this PNG file")
     s.add_argument("-o", "--output", default="scene.nc")
     s.add_argument("--overwrite", action="store_true")
     s.set_defaults(func=_cli_scene)

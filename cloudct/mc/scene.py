@@ -87,6 +87,63 @@ def single_cloud_scene(box_min: np.ndarray, box_max: np.ndarray) -> Scene:
     return Scene(cameras=nine_camera_set(box_min, box_max), sun=Sun(0.0, 0.0), boundary="open")
 
 
+#: Named camera geometries: ring zenith angle [deg], distance from the box centre [km]
+#: (None: fitted to the box, see :func:`build_scene`) and image size [pixels]. The first
+#: two are the seed paper's Table 1 (single cloud; cloud field: 79 x 84 x 27 voxels,
+#: 1.58 x 1.68 x 1.08 km).
+PRESETS = {
+    "single-cloud": {"ring_zenith": 29.0, "distance": 2.0, "npix": 76},
+    "cloud-field": {"ring_zenith": 33.0, "distance": 2.16, "npix": 86},
+    "nadir": {"ring_zenith": 10.0, "distance": None, "npix": 128},
+}
+
+
+def build_scene(
+    box_min: np.ndarray,
+    box_max: np.ndarray,
+    *,
+    preset: str = "single-cloud",
+    ring_zenith: float | None = None,
+    distance: float | None = None,
+    npix: int | None = None,
+    fov: float | None = None,
+    sun_zenith: float = 0.0,
+    sun_azimuth: float = 0.0,
+    boundary: str = "open",
+    ground_albedo: float | None = None,
+) -> Scene:
+    """Nine cameras (zenith + a ring of eight, azimuths 0, 45, ..., 315) aimed at the box
+    centre, from a preset (:data:`PRESETS`) with any of its numbers overridden.
+
+    ``distance`` [km] is from the box centre; the ``nadir`` preset (a steep ring for domains
+    much wider than they are tall) puts the cameras at 1.2 x the box's horizontal
+    diagonal, at least 2 km. ``fov`` [deg] defaults to the one that frames the whole box
+    (:func:`cloudct.mc.cameras.box_fitting_fov`). The scene is checked against the box
+    (:func:`check_scene`): cameras inside it, below the ground or seeing nothing of it are
+    refused.
+    """
+    if preset not in PRESETS:
+        raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
+    lo = np.asarray(box_min, dtype=float)
+    hi = np.asarray(box_max, dtype=float)
+    base = PRESETS[preset]
+    if distance is None:
+        distance = base["distance"]
+        if distance is None:
+            distance = max(2.0, 1.2 * float(np.hypot(*(hi - lo)[:2])))
+    if not distance > 0.0:
+        raise ValueError(f"distance must be positive (km), got {distance}")
+    cameras = nine_camera_set(
+        lo, hi, distance=distance,
+        ring_zenith=base["ring_zenith"] if ring_zenith is None else ring_zenith,
+        npix=base["npix"] if npix is None else int(npix), fov=fov,
+    )
+    scene = Scene(cameras=cameras, sun=Sun(sun_zenith, sun_azimuth), boundary=boundary,
+                  ground_albedo=ground_albedo)
+    check_scene(scene, tuple(np.array([a, b]) for a, b in zip(lo, hi, strict=True)))
+    return scene
+
+
 def _corner_rays(camera: Camera) -> np.ndarray:
     """Unit directions through the four corners of the image."""
     forward, right, up = camera.frame()

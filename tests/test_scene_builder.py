@@ -1,0 +1,98 @@
+"""The scene builder (:func:`cloudct.mc.scene.build_scene`, ``cloudct scene``): presets with
+the seed paper's numbers (Table 1), a fitted field of view that holds every corner of the
+box, overrides, and clear errors for scenes that cannot work."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cloudct.cli import main
+from cloudct.mc.scene import build_scene, load_scene
+
+FIELD = (np.zeros(3), np.array([1.58, 1.68, 1.08]))  # the seed paper's cloud-field box
+
+
+def corners_in_view(camera, lo, hi) -> bool:
+    """Every box corner projects inside the image (written from the pinhole model)."""
+    forward = np.subtract(camera.lookat, camera.position)
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, camera.up)
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    half = math.tan(math.radians(camera.fov) / 2.0)
+    for x in (lo[0], hi[0]):
+        for y in (lo[1], hi[1]):
+            for z in (lo[2], hi[2]):
+                d = np.subtract((x, y, z), camera.position)
+                depth = d @ forward
+                if depth <= 0 or abs(d @ right / depth) > half or abs(d @ up / depth) > half:
+                    return False
+    return True
+
+
+@pytest.mark.parametrize("preset, zenith, distance, npix",
+                         [("single-cloud", 29.0, 2.0, 76), ("cloud-field", 33.0, 2.16, 86)])
+def test_presets_have_the_seed_papers_numbers(preset, zenith, distance, npix):
+    lo, hi = FIELD
+    scene = build_scene(lo, hi, preset=preset)
+    centre = (lo + hi) / 2
+    assert len(scene.cameras) == 9
+    for i, cam in enumerate(scene.cameras):
+        offset = np.subtract(cam.position, centre)
+        assert np.linalg.norm(offset) == pytest.approx(distance, rel=1e-12)
+        ring_angle = math.degrees(math.acos(offset[2] / np.linalg.norm(offset)))
+        assert ring_angle == pytest.approx(0.0 if i == 0 else zenith, abs=1e-9)
+        assert (cam.nrows, cam.ncols) == (npix, npix)
+        assert np.allclose(cam.lookat, centre)
+        assert corners_in_view(cam, lo, hi)
+    azimuths = [math.degrees(math.atan2(c.position[1] - centre[1], c.position[0] - centre[0]))
+                % 360 for c in scene.cameras[1:]]
+    assert np.allclose(azimuths, np.arange(0.0, 360.0, 45.0))
+    assert scene.sun.zenith == 0.0 and scene.boundary == "open" and scene.ground_albedo is None
+
+
+def test_nadir_preset_frames_a_wide_domain():
+    lo, hi = np.zeros(3), np.array([6.0, 5.0, 1.5])
+    scene = build_scene(lo, hi, preset="nadir")
+    assert np.linalg.norm(np.subtract(scene.cameras[0].position, (lo + hi) / 2)) == (
+        pytest.approx(1.2 * math.hypot(6.0, 5.0)))
+    assert all(corners_in_view(c, lo, hi) for c in scene.cameras)
+
+
+def test_overrides_and_the_command_line(tmp_path, capsys):
+    lo, hi = FIELD
+    scene = build_scene(lo, hi, preset="cloud-field", npix=32, fov=70.0, ring_zenith=45.0,
+                        sun_zenith=30.0, sun_azimuth=120.0, boundary="periodic",
+                        ground_albedo=0.2)
+    assert scene.cameras[0].nrows == 32 and scene.cameras[0].fov == 70.0
+    assert scene.sun.zenith == 30.0 and scene.sun.azimuth == 120.0
+    assert scene.periodic and scene.ground_albedo == 0.2
+    out = tmp_path / "scene.nc"
+    assert main(["scene", "-o", str(out), "--preset", "cloud-field", "--npix", "40",
+                 "--sun-zenith", "20", "--boundary", "periodic", "--ground-albedo", "0.1"]) == 0
+    loaded = load_scene(out)
+    assert len(loaded.cameras) == 9 and loaded.cameras[4].nrows == 40
+    assert loaded.sun.zenith == 20.0 and loaded.periodic and loaded.ground_albedo == 0.1
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"distance": 0.5}, "farther from the box centre"),
+    ({"preset": "satellite"}, "preset must be one of"),
+    ({"sun_zenith": 95.0}, "sun"),
+    ({"ring_zenith": 120.0, "ground_albedo": 0.3}, "below the ground"),
+])
+def test_scenes_that_cannot_work_are_refused(kwargs, message):
+    lo, hi = FIELD
+    with pytest.raises(ValueError, match=message):
+        build_scene(lo, hi, **kwargs)
+
+
+def test_scene_figure(tmp_path, capsys):
+    out, figure = tmp_path / "scene.nc", tmp_path / "scene.png"
+    assert main(["scene", "-o", str(out), "--preset", "cloud-field", "--sun-zenith", "30",
+                 "--figure", str(figure)]) == 0
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert str(figure) in capsys.readouterr().out
