@@ -80,6 +80,7 @@ def test_overrides_and_the_command_line(tmp_path, capsys):
 
 @pytest.mark.parametrize("kwargs, message", [
     ({"distance": 0.5}, "farther from the box centre"),
+    ({"distance": 1.3}, "too wide to be framed"),
     ({"preset": "satellite"}, "preset must be one of"),
     ({"sun_zenith": 95.0}, "sun"),
     ({"ring_zenith": 120.0, "ground_albedo": 0.3}, "below the ground"),

@@ -233,6 +233,11 @@ def ring_cameras(
     return cams
 
 
+#: The widest field of view [deg] that :func:`box_fitting_fov` fits: wider pinhole images
+#: squeeze the box into a few central pixels.
+MAX_FITTED_FOV = 150.0
+
+
 def box_fitting_fov(
     box_min: np.ndarray, box_max: np.ndarray, distance: float, margin: float = 1.05
 ) -> float:
@@ -241,7 +246,15 @@ def box_fitting_fov(
     radius = 0.5 * float(np.linalg.norm(np.subtract(box_max, box_min)))
     if radius >= distance:
         raise ValueError("cameras must be farther from the box centre than its half-diagonal")
-    return float(2.0 * np.degrees(np.arcsin(min(margin * radius / distance, 1.0))))
+    if margin * radius / distance > math.sin(math.radians(MAX_FITTED_FOV / 2.0)):
+        needed = margin * radius / math.sin(math.radians(MAX_FITTED_FOV / 2.0))
+        raise ValueError(
+            f"the box (half-diagonal {radius:.3g} km) is too wide to be framed from "
+            f"{distance:.3g} km: its field of view would exceed {MAX_FITTED_FOV:g} degrees; "
+            f"place the cameras at least {needed:.3g} km from its centre, or give a field of "
+            "view that frames a part of it"
+        )
+    return float(2.0 * np.degrees(np.arcsin(margin * radius / distance)))
 
 
 def nine_camera_set(
