@@ -78,9 +78,26 @@ def test_overrides_and_the_command_line(tmp_path, capsys):
     assert loaded.sun.zenith == 20.0 and loaded.periodic and loaded.ground_albedo == 0.1
 
 
+def test_cameras_at_an_altitude_and_azimuths(tmp_path, capsys):
+    lo, hi = FIELD
+    scene = build_scene(lo, hi, preset="cloud-field", altitude=4.0, azimuths=[0.0, 120.0, 240.0])
+    assert len(scene.cameras) == 4
+    assert all(c.position[2] == pytest.approx(4.0) for c in scene.cameras)
+    centre = (lo + hi) / 2
+    for cam in scene.cameras[1:]:
+        offset = np.subtract(cam.position, centre)
+        assert math.degrees(math.acos(offset[2] / np.linalg.norm(offset))) == pytest.approx(33.0)
+        assert corners_in_view(cam, lo, hi)
+    out = tmp_path / "scene.nc"
+    assert main(["scene", "-o", str(out), "--altitude", "5", "--azimuths", "10", "190"]) == 0
+    assert [round(c.position[2], 9) for c in load_scene(out).cameras] == [5.0, 5.0, 5.0]
+
+
 @pytest.mark.parametrize("kwargs, message", [
     ({"distance": 0.5}, "farther from the box centre"),
     ({"distance": 1.3}, "too wide to be framed"),
+    ({"distance": 3.0, "altitude": 4.0}, "not both"),
+    ({"altitude": 1.0}, "not above the box"),
     ({"preset": "satellite"}, "preset must be one of"),
     ({"sun_zenith": 95.0}, "sun"),
     ({"ring_zenith": 120.0, "ground_albedo": 0.3}, "below the ground"),

@@ -387,8 +387,9 @@ def _cli_scene(args: argparse.Namespace) -> int:
     scene = build_scene(
         np.array([e[0] for e in edges]), np.array([e[-1] for e in edges]),
         preset=args.preset, ring_zenith=args.ring_zenith, distance=args.distance,
-        npix=args.npix, fov=args.fov, sun_zenith=args.sun_zenith, sun_azimuth=args.sun_azimuth,
-        boundary=args.boundary, ground_albedo=args.ground_albedo,
+        altitude=args.altitude, azimuths=args.azimuths, npix=args.npix, fov=args.fov,
+        sun_zenith=args.sun_zenith, sun_azimuth=args.sun_azimuth, boundary=args.boundary,
+        ground_albedo=args.ground_albedo,
     )
     output = Path(args.output)
     if output.exists() and not args.overwrite:
@@ -446,16 +447,22 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     s = subparsers.add_parser(
         "scene", help="write a nine-camera scene for a medium (presets, sun, boundaries)",
         description="Write a scene netCDF: a zenith camera and a ring of eight aimed at the "
-        "box centre. Presets: single-cloud (ring at 29 deg, 2 km, 76x76: the seed paper's "
-        "single cloud), cloud-field (33 deg, 2.16 km, 86x86: its cloud field), nadir (10 "
-        "deg, 1.2 x the box's horizontal diagonal, 128x128: wide domains); any number may "
-        "be overridden. The field of view frames the box unless given.",
+        "box centre (a ring at other azimuths or at an altitude on request). Presets: "
+        "single-cloud (ring at 29 deg, 2 km, 76x76: the seed paper's single cloud), "
+        "cloud-field (33 deg, 2.16 km, 86x86: its cloud field), nadir (10 deg, 1.2 x the "
+        "box's horizontal diagonal, 128x128: wide domains); any number may be overridden. "
+        "The field of view frames the box unless given.",
     )
     s.add_argument("medium", nargs="?", help="medium netCDF (default: bundled single cloud)")
     s.add_argument("--preset", choices=sorted(PRESETS), default="single-cloud")
     s.add_argument("--ring-zenith", type=float, metavar="DEG", help="ring cameras' zenith angle")
-    s.add_argument("--distance", type=float, metavar="KM", help="cameras' distance from the box "
-                   "centre")
+    where = s.add_mutually_exclusive_group()
+    where.add_argument("--distance", type=float, metavar="KM",
+                       help="cameras' distance from the box centre")
+    where.add_argument("--altitude", type=float, metavar="KM",
+                       help="every camera at this height instead (the ring farther away)")
+    s.add_argument("--azimuths", type=float, nargs="+", metavar="DEG",
+                   help="the ring cameras' azimuths (default: 0 45 ... 315)")
     s.add_argument("--npix", type=int, metavar="N", help="image size, N x N pixels")
     s.add_argument("--fov", type=float, metavar="DEG", help="full field of view (default: "
                    "fitted to the box)")

@@ -8,13 +8,22 @@ images would be visible.
 
 from __future__ import annotations
 
+import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import xarray as xr
 
-from cloudct.mc.cameras import Camera, cameras_dataset, cameras_from_dataset, nine_camera_set
+from cloudct.mc.cameras import (
+    Camera,
+    box_fitting_fov,
+    cameras_dataset,
+    cameras_from_dataset,
+    nine_camera_set,
+    ring_cameras,
+)
 from cloudct.mc.sun import Sun
 from cloudct.netcdf import InputFileError, load_netcdf
 
@@ -107,37 +116,58 @@ def build_scene(
     distance: float | None = None,
     npix: int | None = None,
     fov: float | None = None,
+    azimuths: Sequence[float] | None = None,
+    altitude: float | None = None,
     sun_zenith: float = 0.0,
     sun_azimuth: float = 0.0,
     boundary: str = "open",
     ground_albedo: float | None = None,
 ) -> Scene:
-    """Nine cameras (zenith + a ring of eight, azimuths 0, 45, ..., 315) aimed at the box
-    centre, from a preset (:data:`PRESETS`) with any of its numbers overridden.
+    """A zenith camera and a ring (azimuths 0, 45, ..., 315 unless ``azimuths`` [deg, from
+    +x toward +y] are given) aimed at the box centre, from a preset (:data:`PRESETS`) with
+    any of its numbers overridden.
 
     ``distance`` [km] is from the box centre; the ``nadir`` preset (a steep ring for domains
     much wider than they are tall) puts the cameras at 1.2 x the box's horizontal
-    diagonal, at least 2 km. ``fov`` [deg] defaults to the one that frames the whole box
-    (:func:`cloudct.mc.cameras.box_fitting_fov`). The scene is checked against the box
-    (:func:`check_scene`): cameras inside it, below the ground or seeing nothing of it are
-    refused.
+    diagonal, at least 2 km. ``altitude`` [km] instead puts every camera at that height:
+    the zenith camera straight above the centre, the ring at ``ring_zenith`` from the
+    vertical through the centre (so farther away). ``fov`` [deg] defaults to the one that
+    frames the whole box from the nearest camera (:func:`cloudct.mc.cameras.box_fitting_fov`).
+    The scene is checked against the box (:func:`check_scene`): cameras inside it, below
+    the ground or seeing nothing of it are refused.
     """
     if preset not in PRESETS:
         raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
     lo = np.asarray(box_min, dtype=float)
     hi = np.asarray(box_max, dtype=float)
     base = PRESETS[preset]
-    if distance is None:
-        distance = base["distance"]
+    zenith = base["ring_zenith"] if ring_zenith is None else float(ring_zenith)
+    npix = base["npix"] if npix is None else int(npix)
+    azimuths = np.arange(0.0, 360.0, 45.0) if azimuths is None else np.asarray(azimuths, float)
+    centre = 0.5 * (lo + hi)
+    if altitude is not None:
+        if distance is not None:
+            raise ValueError("give the cameras' distance or their altitude, not both")
+        if not altitude > hi[2]:
+            raise ValueError(f"altitude {altitude} km is not above the box (top {hi[2]} km)")
+        if not 0.0 <= zenith < 90.0:
+            raise ValueError(f"with an altitude the ring zenith must be in [0, 90), got {zenith}")
+        distance = altitude - centre[2]
+        ring_distance = distance / math.cos(math.radians(zenith))
+    else:
         if distance is None:
-            distance = max(2.0, 1.2 * float(np.hypot(*(hi - lo)[:2])))
+            distance = base["distance"]
+            if distance is None:
+                distance = max(2.0, 1.2 * float(np.hypot(*(hi - lo)[:2])))
+        ring_distance = distance
     if not distance > 0.0:
         raise ValueError(f"distance must be positive (km), got {distance}")
-    cameras = nine_camera_set(
-        lo, hi, distance=distance,
-        ring_zenith=base["ring_zenith"] if ring_zenith is None else ring_zenith,
-        npix=base["npix"] if npix is None else int(npix), fov=fov,
-    )
+    if fov is None:
+        fov = box_fitting_fov(lo, hi, distance)
+    cameras = ring_cameras(tuple(centre), distance=distance, zenith=0.0, azimuths=[],
+                           fov=fov, npix=npix)
+    cameras += ring_cameras(tuple(centre), distance=ring_distance, zenith=zenith,
+                            azimuths=azimuths, fov=fov, npix=npix, include_zenith=False)
     scene = Scene(cameras=cameras, sun=Sun(sun_zenith, sun_azimuth), boundary=boundary,
                   ground_albedo=ground_albedo)
     check_scene(scene, tuple(np.array([a, b]) for a, b in zip(lo, hi, strict=True)))
