@@ -42,12 +42,6 @@ from cloudct.physics.mixing import mixture_phase_function
 DEFAULT_AIM_FRACTION = 0.1
 
 
-@njit(cache=True, inline="always")
-def sees(cams, view, px, py, pz):
-    """True when camera ``view``'s image holds the point (px, py, pz)."""
-    return project(cams, view, px, py, pz)[0] >= 0
-
-
 @njit(cache=True)
 def aimed_weight(grid, bank, cams, ix, iy, iz, px, py, pz, vx, vy, vz, wx, wy, wz):
     """f(v . w) / q(w) of a direction w leaving a scattering event at (px, py, pz) in voxel
@@ -84,7 +78,7 @@ def scatter_aimed(grid, bank, cams, ix, iy, iz, px, py, pz, ux, uy, uz, state):
     if u < cams.aim_fraction:
         seen = 0
         for view in range(cams.position.shape[0]):
-            if sees(cams, view, px, py, pz):
+            if project(cams, view, px, py, pz)[0] >= 0:
                 seen += 1
         if seen > 0:
             pick = min(int(u / cams.aim_fraction * seen), seen - 1)

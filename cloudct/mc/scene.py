@@ -21,14 +21,12 @@ from cloudct.mc.cameras import (
     box_fitting_fov,
     cameras_dataset,
     cameras_from_dataset,
-    nine_camera_set,
     ring_cameras,
 )
 from cloudct.mc.sun import Sun
 from cloudct.netcdf import InputFileError, load_netcdf
 
 BOUNDARIES = ("open", "periodic")
-
 
 
 @dataclass(frozen=True)
@@ -92,8 +90,9 @@ class Scene:
 
 def single_cloud_scene(box_min: np.ndarray, box_max: np.ndarray) -> Scene:
     """The seed paper's single-cloud scene geometry: nine 76x76 cameras at 2 km from the
-    box centre (zenith + ring at 29 degrees), sun at the zenith, open boundaries."""
-    return Scene(cameras=nine_camera_set(box_min, box_max), sun=Sun(0.0, 0.0), boundary="open")
+    box centre (zenith + ring at 29 degrees), sun at the zenith, open boundaries
+    (:func:`build_scene`'s ``single-cloud`` preset)."""
+    return build_scene(box_min, box_max, preset="single-cloud")
 
 
 #: Named camera geometries: ring zenith angle [deg], distance from the box centre [km]
@@ -174,7 +173,7 @@ def build_scene(
     return scene
 
 
-def _corner_rays(camera: Camera) -> np.ndarray:
+def corner_rays(camera: Camera) -> np.ndarray:
     """Unit directions through the four corners of the image."""
     forward, right, up = camera.frame()
     hw = np.tan(np.radians(camera.fov) / 2.0)
@@ -261,7 +260,7 @@ def periodic_copy_ranges(
     lx, ly = xe[-1] - xe[0], ye[-1] - ye[0]
     for k, cam in enumerate(scene.cameras):
         pos = np.asarray(cam.position, float)
-        rays = _corner_rays(cam)
+        rays = corner_rays(cam)
         points = []
         for zp in (ze[0], ze[-1]):
             t = (zp - pos[2]) / rays[:, 2]

@@ -4,22 +4,11 @@ before rendering it (``cloudct scene --figure``)."""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 
-from cloudct.mc.scene import Scene
-
-
-def _corner_rays(camera) -> np.ndarray:
-    """Unit directions through the four corners of a camera's image."""
-    forward, right, up = camera.frame()
-    hw = math.tan(math.radians(camera.fov) / 2.0)
-    hh = hw * camera.nrows / camera.ncols
-    rays = np.array([forward + a * hw * right + b * hh * up
-                     for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
-    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+from cloudct.mc.scene import Scene, corner_rays
 
 
 def save_scene_figure(scene: Scene, box_min: np.ndarray, box_max: np.ndarray,
@@ -45,7 +34,7 @@ def save_scene_figure(scene: Scene, box_min: np.ndarray, box_max: np.ndarray,
         for k, cam in enumerate(scene.cameras):
             p = np.asarray(cam.position, dtype=float)
             reach = float(np.linalg.norm(np.subtract(cam.lookat, p)))
-            for ray in _corner_rays(cam):
+            for ray in corner_rays(cam):
                 q = p + reach * ray
                 ax.plot([p[i], q[i]], [p[j], q[j]], color="tab:blue", lw=0.5, alpha=0.5)
             ax.plot([p[i], cam.lookat[i]], [p[j], cam.lookat[j]], color="tab:blue", lw=0.8)
