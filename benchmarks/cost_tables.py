@@ -51,7 +51,7 @@ def field_piece(size: str):
     import xarray as xr
     from scenes import LES, single_cloud_optics
 
-    from data_synth.les import read_les
+    from cloudct.les import read_les
 
     les = read_les(LES / "rico122x106x39.txt")
     tiles = SIZES[size]

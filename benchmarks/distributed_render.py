@@ -61,9 +61,9 @@ def main() -> None:
         DaskExecutor,
         DistributedRecycler,
         close_client,
+        executor,
         local_cluster,
     )
-    from cloudct.distributed.core import executor
     from cloudct.mc.render import render, single_cloud_medium
     from cloudct.mc.scene import single_cloud_scene
     from cloudct.medium import cell_edges
@@ -80,7 +80,8 @@ def main() -> None:
     render(medium, scene, photons=64, progress=False)  # JIT / cache load
     client = local_cluster(args.workers, threads=1)
     try:
-        render(medium, scene, photons=64, progress=False, client=client)  # workers' cache load
+        render(medium, scene, photons=64, progress=False,
+               executor=executor(client))  # workers' cache load
         serial, dist, lo_bytes, payload, loads = [], [], [], [], []
         serial_cpu, worker_cpu, overhead = [], [], []
         for _ in range(args.repeats):
@@ -91,7 +92,7 @@ def main() -> None:
             serial_cpu.append(time.process_time() - c0)
             lo0 = loopback_bytes()
             t0 = time.perf_counter()
-            out = render(medium, scene, **kw, client=client)
+            out = render(medium, scene, **kw, executor=executor(client))
             dist.append(time.perf_counter() - t0)
             lo1 = loopback_bytes()
             per_worker: dict[str, float] = {}
@@ -109,7 +110,7 @@ def main() -> None:
             assert np.array_equal(out.radiance_std_error.values, ref.radiance_std_error.values)
         # the first call with a medium scatters it; later calls re-use it: report both
         first_call = render(medium, scene, photons=64, progress=False,
-                            client=DaskExecutor(client))  # an executor with an empty cache
+                            executor=DaskExecutor(client))  # an executor with an empty cache
 
         # one retrieval iteration: images + gradient of a perturbed medium
         guess = medium.copy(deep=True)

@@ -48,13 +48,13 @@ sys.path.insert(0, str(HERE))
 from common import markdown_table, run_header, write_json_and_markdown  # noqa: E402
 from scenes import LES, two_cumuli  # noqa: E402
 
+from cloudct.les import bundled_single_cloud, read_les  # noqa: E402
 from cloudct.mc.gradient import score_function_gradient  # noqa: E402
 from cloudct.mc.render import render_batches  # noqa: E402
 from cloudct.mc.scene import single_cloud_scene  # noqa: E402
 from cloudct.medium import cell_edges  # noqa: E402
-from cloudct.physics.optics import to_optical  # noqa: E402
+from cloudct.optics import to_optical  # noqa: E402
 from cloudct.retrieval.optimizers import block_mean  # noqa: E402
-from data_synth.les import bundled_single_cloud, read_les  # noqa: E402
 
 BATCHES = 32
 

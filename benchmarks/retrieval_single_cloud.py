@@ -41,18 +41,18 @@ sys.path.insert(0, str(HERE.parent))
 
 from common import run_header  # noqa: E402
 
+from cloudct.cli.retrieve import add_run_options, config_from_options  # noqa: E402
 from cloudct.mc.render import render, single_cloud_medium  # noqa: E402
 from cloudct.mc.scene import Scene  # noqa: E402
-from cloudct.medium import load_medium  # noqa: E402
-from cloudct.retrieval.carving import PROFILES, carve, initial_medium  # noqa: E402
-from cloudct.retrieval.cli import add_run_options, config_from_options  # noqa: E402
-from cloudct.retrieval.loop import Retrieval, coarse_measurements  # noqa: E402
-from cloudct.retrieval.loss import cross_loss, pixel_weights  # noqa: E402
-from data_synth.measurements import (  # noqa: E402
+from cloudct.measurements import (  # noqa: E402
     load_measurements,
     save_measurements,
     synthesize_measurements,
 )
+from cloudct.medium import load_medium  # noqa: E402
+from cloudct.retrieval.carving import PROFILES, carve, initial_medium  # noqa: E402
+from cloudct.retrieval.loop import Retrieval, coarse_measurements  # noqa: E402
+from cloudct.retrieval.loss import cross_loss, pixel_weights  # noqa: E402
 
 
 def measurements_for(truth, photons: int, work: Path, name: str = "single_cloud"):

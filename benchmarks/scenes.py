@@ -33,9 +33,9 @@ from scipy import ndimage
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
+from cloudct.les import read_les  # noqa: E402
 from cloudct.medium import save_medium  # noqa: E402
-from cloudct.physics.optics import to_optical  # noqa: E402
-from data_synth.les import read_les  # noqa: E402
+from cloudct.optics import to_optical  # noqa: E402
 
 LES = HERE.parent.parent / "shared" / "data" / "les"
 #: two_cumuli: how many of the largest clouds to skip (the stratocumulus) and to keep, and

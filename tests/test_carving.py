@@ -11,8 +11,9 @@ from cloudct.mc.cameras import camera_arrays, nine_camera_set, project
 from cloudct.mc.render import render, render_batches
 from cloudct.mc.scene import Scene
 from cloudct.mc.sun import Sun
+from cloudct.measurements import save_measurements, synthesize_measurements
 from cloudct.medium import cell_edges, load_medium, save_medium, validate_medium
-from cloudct.physics.optics import to_optical
+from cloudct.optics import to_optical
 from cloudct.retrieval.carving import (
     carve,
     clear_sky_background,
@@ -21,7 +22,6 @@ from cloudct.retrieval.carving import (
     project_points,
 )
 from cloudct.retrieval.metrics import epsilon_delta
-from data_synth.measurements import save_measurements, synthesize_measurements
 from data_synth.synthetic_cloud import blob_cloud, synthetic_cloud
 
 

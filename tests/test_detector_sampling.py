@@ -29,6 +29,7 @@ from mcstats import assert_consistent
 from numba import njit
 from scipy import integrate
 
+from cloudct.les import bundled_single_cloud
 from cloudct.mc.cameras import Camera, camera_arrays
 from cloudct.mc.detector_sampling import DEFAULT_AIM_FRACTION, scatter_aimed
 from cloudct.mc.gradient import score_function_gradient
@@ -36,9 +37,8 @@ from cloudct.mc.random import stream_start
 from cloudct.mc.render import kernel_inputs, render, render_batches
 from cloudct.mc.scene import Scene
 from cloudct.mc.sun import Sun
+from cloudct.optics import to_optical
 from cloudct.physics.mixing import mixture_phase_function
-from cloudct.physics.optics import to_optical
-from data_synth.les import bundled_single_cloud
 
 BATCHES = 32
 

@@ -29,15 +29,16 @@ from distributed import WorkerPlugin  # noqa: E402
 from test_recycling import scaled, weights_for  # noqa: E402
 from test_score_gradient import gradient_medium, gradient_scene, pixel_weights  # noqa: E402
 
-import cloudct.distributed.core as core  # noqa: E402
+import cloudct.distributed.batches as batches  # noqa: E402
 from cloudct.distributed import (  # noqa: E402
     DaskExecutor,
     DistributedError,
     DistributedRecycler,
     close_client,
+    executor,
     local_cluster,
 )
-from cloudct.distributed.core import BatchPart, assemble  # noqa: E402
+from cloudct.distributed.batches import BatchPart, assemble  # noqa: E402
 from cloudct.distributed.recycling import record_part  # noqa: E402
 from cloudct.mc.gradient import score_function_gradient  # noqa: E402
 from cloudct.mc.render import render  # noqa: E402
@@ -68,10 +69,10 @@ def same(a, b) -> bool:
 def test_images_equal_the_single_process_images_bitwise(client, method, photons):
     medium, scene = gradient_medium(), gradient_scene()
     ref = render(medium, scene, photons=photons, method=method, seed=3, progress=False)
-    for where in (client, DaskExecutor(client, batches_per_task=1),
+    for where in (executor(client), DaskExecutor(client, batches_per_task=1),
                   DaskExecutor(client, batches_per_task=5)):
         out = render(medium, scene, photons=photons, method=method, seed=3, progress=False,
-                     client=where)
+                     executor=where)
         assert same(out.radiance.values, ref.radiance.values)
         assert same(out.radiance_std_error.values, ref.radiance_std_error.values)
         assert out.attrs["events"] == ref.attrs["events"]
@@ -85,7 +86,7 @@ def test_gradients_loss_and_retrieval_equal_the_single_process_ones_bitwise(clie
     ref = score_function_gradient(medium, scene, weights, photons=20_000, seed=5,
                                   progress=False)
     out = score_function_gradient(medium, scene, weights, photons=20_000, seed=5,
-                                  progress=False, client=client)
+                                  progress=False, executor=executor(client))
     assert same(out[0], ref[0]) and same(out[1], ref[1])
     assert out[2]["events"] == ref[2]["events"]
 
@@ -176,7 +177,7 @@ def _kill_once(marker: str):
 
 
 def _set_hook(hook):
-    core.FAULT_HOOK = hook
+    batches.FAULT_HOOK = hook
 
 
 def test_a_worker_killed_mid_call_is_replaced_and_the_result_is_complete(client, tmp_path):
@@ -186,7 +187,7 @@ def test_a_worker_killed_mid_call_is_replaced_and_the_result_is_complete(client,
     client.run(_set_hook, _kill_once(marker))
     try:
         out = render(medium, scene, photons=20_000, seed=9, progress=False,
-                     client=DaskExecutor(client, batches_per_task=4))
+                     executor=DaskExecutor(client, batches_per_task=4))
     finally:
         client.run(_set_hook, None)
     assert os.path.exists(marker)  # a worker did die during the call
@@ -205,10 +206,10 @@ class _KillAlways(WorkerPlugin):
         def hook(kind, start):
             os._exit(1)
 
-        core.FAULT_HOOK = hook
+        batches.FAULT_HOOK = hook
 
     def teardown(self, worker):
-        core.FAULT_HOOK = None
+        batches.FAULT_HOOK = None
 
 
 def test_a_task_that_keeps_killing_workers_fails_the_call_clearly(client):
@@ -217,7 +218,7 @@ def test_a_task_that_keeps_killing_workers_fails_the_call_clearly(client):
     try:
         with pytest.raises(DistributedError, match="no partial result"):
             render(medium, scene, photons=2_000, seed=1, progress=False,
-                   client=DaskExecutor(client, batches_per_task=32))
+                   executor=DaskExecutor(client, batches_per_task=32))
     finally:
         client.unregister_worker_plugin(_KillAlways.name)
         client.run(_set_hook, None)
@@ -248,7 +249,7 @@ import numpy as np
 from numba import config
 assert config.ENABLE_CUDASIM
 import cloudct.mc.cuda_kernels as ck
-from cloudct.distributed.core import assemble, backward_task, forward_task
+from cloudct.distributed.batches import assemble, backward_task, forward_task
 from cloudct.mc.forward import GRADIENT, RENDER
 from cloudct.mc.gradient import score_function_gradient
 from cloudct.mc.render import kernel_inputs, render_batches
@@ -311,8 +312,8 @@ def test_cli_render_and_retrieve_on_workers(client, tmp_path):
     import xarray as xr
 
     from cloudct.cli import main
+    from cloudct.measurements import save_measurements, synthesize_measurements
     from cloudct.medium import save_medium
-    from data_synth.measurements import save_measurements, synthesize_measurements
 
     medium, scene = gradient_medium(), gradient_scene()
     save_medium(medium, tmp_path / "m.nc")

@@ -32,7 +32,7 @@ from cloudct.mc.render import render_batches
 from cloudct.mc.scene import Scene
 from cloudct.mc.sun import Sun
 from cloudct.medium import optical_medium
-from cloudct.physics.optics import kernel_arrays
+from cloudct.optics import kernel_arrays
 
 N = 5
 BATCHES = 32

@@ -10,16 +10,16 @@ import numpy as np
 import pytest
 
 import cloudct.cli
-from cloudct.medium import cell_edges, domain_bounds, load_medium
-from data_synth.les import (
+from cloudct.cli.media import register_cli
+from cloudct.les import (
     BUNDLED_SOURCE,
     LESFormatError,
     bundled_single_cloud,
     read_jpl_les,
     read_les,
     read_shdom_particle_file,
-    register_cli,
 )
+from cloudct.medium import cell_edges, domain_bounds, load_medium
 
 REPO = Path(__file__).resolve().parents[1]
 BUNDLED = REPO / "cloudct" / "data" / "rico32x37x26.txt"
@@ -232,7 +232,7 @@ def test_les2nc_writes_a_medium(tmp_path, capsys, single_cloud):
 
 def test_les2nc_through_main_refuses_overwrite(tmp_path, monkeypatch, capsys):
     # Only this module's subcommand, so the test does not depend on the others existing.
-    monkeypatch.setattr(cloudct.cli, "COMMAND_MODULES", ("data_synth.les",))
+    monkeypatch.setattr(cloudct.cli, "COMMAND_MODULES", ("cloudct.cli.media",))
     out = tmp_path / "medium.nc"
     text = JPL_HEADER + _ROW + "0,0,0,0.1,10\n"
     src = _write(tmp_path, text)
@@ -244,7 +244,7 @@ def test_les2nc_through_main_refuses_overwrite(tmp_path, monkeypatch, capsys):
 
 
 def test_les2nc_reports_malformed_file(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(cloudct.cli, "COMMAND_MODULES", ("data_synth.les",))
+    monkeypatch.setattr(cloudct.cli, "COMMAND_MODULES", ("cloudct.cli.media",))
     src = _write(tmp_path, JPL_HEADER + _ROW + "0,0,0,-0.1,10\n", name="neg.txt")
     assert cloudct.cli.main(["les2nc", str(src), "-o", str(tmp_path / "m.nc")]) == 2
     err = capsys.readouterr().err

@@ -11,9 +11,7 @@ from cloudct.cli import main
 from cloudct.mc.cameras import nine_camera_set
 from cloudct.mc.scene import Scene
 from cloudct.mc.sun import Sun
-from cloudct.medium import cell_edges, is_microphysical, save_medium, validate_medium
-from cloudct.physics.optics import to_optical
-from data_synth.measurements import (
+from cloudct.measurements import (
     MeasurementError,
     NoiseModel,
     load_measurements,
@@ -22,6 +20,8 @@ from data_synth.measurements import (
     synthesize_measurements,
     validate_measurements,
 )
+from cloudct.medium import cell_edges, is_microphysical, save_medium, validate_medium
+from cloudct.optics import to_optical
 from data_synth.synthetic_cloud import blob_cloud, synthetic_cloud
 
 

@@ -16,8 +16,8 @@ from scipy import stats
 
 import cloudct.physics.mie as mie
 from cloudct.medium import microphysical_medium
+from cloudct.optics import kernel_arrays, to_optical
 from cloudct.physics.mie import compute_mie_table, mie_efficiencies, mie_table
-from cloudct.physics.optics import kernel_arrays, to_optical
 from cloudct.physics.phase import HENYEY_GREENSTEIN, RAYLEIGH, TABULATED
 
 

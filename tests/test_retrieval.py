@@ -414,8 +414,8 @@ def test_cli_retrieve_passes_the_coarse_to_fine_options(tmp_path, measurements, 
     import xarray as xr
 
     from cloudct.cli import main
+    from cloudct.measurements import save_measurements
     from cloudct.medium import save_medium
-    from data_synth.measurements import save_measurements
 
     save_measurements(measurements, tmp_path / "meas.nc")
     save_medium(initial_guess(), tmp_path / "init.nc")
@@ -480,8 +480,8 @@ def test_cli_report_writes_figures_and_the_error_split(tmp_path, measurements):
     """``cloudct report RESULT --truth --measurements``: the figures and a summary whose
     epsilon, delta and epsilon split are those of the result against the truth."""
     from cloudct.cli import main
+    from cloudct.measurements import save_measurements
     from cloudct.medium import save_medium
-    from data_synth.measurements import save_measurements
 
     truth = gradient_medium()
     result = Retrieval(measurements, initial_guess(), RetrievalConfig(iterations=3, **CONFIG),

@@ -161,8 +161,8 @@ def test_gradient_estimate_chooses_the_estimator_by_name():
     with pytest.raises(ValueError, match="camera-side"):
         gradient_estimate(medium, scene, r, estimator="score", paths=64,
                           pixel_sampling="residual")
-    with pytest.raises(ValueError, match="no client"):
-        gradient_estimate(medium, scene, r, estimator="drt", paths=64, client="tcp://x:1")
+    with pytest.raises(ValueError, match="no executor"):
+        gradient_estimate(medium, scene, r, estimator="drt", paths=64, executor=object())
 
 
 # ----------------------------------------------------------------------------------------

@@ -34,7 +34,9 @@ from collections.abc import Callable
 import numpy as np
 import xarray as xr
 
-from cloudct.distributed.core import DistributedError, executor, nbytes
+from cloudct.distributed.batches import nbytes
+from cloudct.distributed.cluster import DistributedError
+from cloudct.distributed.executor import executor
 from cloudct.mc.render import check_residual, kernel_inputs
 from cloudct.mc.scene import Scene
 from cloudct.medium import cell_edges
@@ -73,7 +75,7 @@ def part_summary(store: PathStore) -> dict:
 
 def part_log_weights(store: PathStore, medium: xr.Dataset) -> np.ndarray:
     """:func:`~cloudct.recycling.replay.weight_summary` of the part's paths (per batch)."""
-    from cloudct.distributed.core import _fault
+    from cloudct.distributed.batches import _fault
 
     _fault("log_weights", store.info.get("first_batch", 0))
     return weight_summary(correction_log_weights(store, medium), store.batches)
@@ -83,7 +85,7 @@ def part_replay(store: PathStore, medium: xr.Dataset, residual) -> tuple:
     """Per-batch images (``residual`` None) or gradients of the part, batch means as
     :func:`~cloudct.recycling.replay.replay_images`, with the per-batch summary of the
     paths' log r and the events."""
-    from cloudct.distributed.core import _fault
+    from cloudct.distributed.batches import _fault
 
     _fault("replay", store.info.get("first_batch", 0))
     if residual is None:

@@ -1,16 +1,11 @@
 """Choice of the compute back end: CPU kernels (numba, parallel over batches) or CUDA kernels.
 
-``backend="cpu"`` runs :func:`cloudct.mc.forward.forward_batches` and
-:func:`cloudct.mc.backward.backward_batches`; ``"cuda"`` the kernels of
-:mod:`cloudct.mc.cuda_kernels` (imported only then; needs numba-cuda and a GPU, or the CUDA
-simulator); ``"auto"`` CUDA where a GPU is available, else the CPU with a one-line warning.
-Both run the same ``@njit`` per-photon routines with the same photon indexing and random
-streams.
-
-The runners returned here are what :func:`cloudct.mc.render.run_in_rounds` calls:
-``run(first, last)`` traces photons (or pixel samples) ``first .. last - 1`` of every batch
-and leaves the results in the host arrays given to the runner once the round that ends at
-``per_batch`` has run; ``run.max_rounds`` is the most rounds it should be called in.
+``backend="cpu"`` runs the ``@njit`` batch kernels; ``"cuda"`` the kernels of
+:mod:`cloudct.mc.cuda_kernels` (needs numba-cuda and a GPU, or the CUDA simulator);
+``"auto"`` CUDA where a GPU is available, else the CPU with a one-line warning. Both run the
+same ``@njit`` per-photon routines with the same photon indexing and random streams.
+:mod:`cloudct.mc.runners` builds the runner of an estimator on the chosen back end; this
+module imports no estimator.
 """
 
 from __future__ import annotations
@@ -19,9 +14,6 @@ import importlib.util
 import warnings
 
 import numpy as np
-
-from cloudct.mc.backward import backward_batches
-from cloudct.mc.forward import forward_batches
 
 BACKENDS = ("cpu", "cuda", "auto")
 
@@ -63,73 +55,6 @@ def resolve_backend(backend: str) -> str:
         raise RuntimeError(f"backend='cuda': {reason}")
     warnings.warn(f"backend='auto': {reason}; running on the CPU", RuntimeWarning, stacklevel=3)
     return "cpu"
-
-
-class _CPURunner:
-    """Calls a CPU batch kernel with fixed arguments around ``first, last``."""
-
-    max_rounds = 50
-
-    def __init__(self, kernel, head: tuple, tail: tuple):
-        self.kernel = kernel
-        self.head = head
-        self.tail = tail
-
-    def __call__(self, first: int, last: int) -> None:
-        self.kernel(*self.head, first, last, *self.tail)
-
-
-def forward_runner(
-    backend: str, k, rr_depth: int, rr_survival: float, seed: int, per_batch: int, mode: int,
-    images: np.ndarray, residual: np.ndarray, gradients: np.ndarray, events: np.ndarray,
-):
-    """Runner of :func:`~cloudct.mc.forward.forward_batches` (RENDER or GRADIENT mode) on
-    ``backend`` ("cpu" or "cuda"), ``k`` a :class:`~cloudct.mc.render.KernelInputs`."""
-    if backend == "cuda":
-        from cloudct.mc.cuda_kernels import ForwardLauncher
-
-        return ForwardLauncher(
-            k, rr_depth, rr_survival, seed, per_batch, mode, images, residual, gradients, events
-        )
-    head = (k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, rr_depth,
-            rr_survival, seed, per_batch)
-    return _CPURunner(forward_batches, head, (mode, images, residual, gradients, events))
-
-
-def backward_runner(
-    backend: str, k, rr_depth: int, rr_survival: float, seed: int, per_batch: int,
-    images: np.ndarray, events: np.ndarray,
-):
-    """Runner of :func:`~cloudct.mc.backward.backward_batches` on ``backend``."""
-    if backend == "cuda":
-        from cloudct.mc.cuda_kernels import BackwardLauncher
-
-        return BackwardLauncher(k, rr_depth, rr_survival, seed, per_batch, images, events)
-    head = (k.grid, k.bank, k.cams, k.sun, k.periodic, k.ground, rr_depth, rr_survival, seed,
-            per_batch)
-    return _CPURunner(backward_batches, head, (images, events))
-
-
-def camera_gradient_runner(
-    backend: str, k, rr_depth: int, rr_survival: float, seed: int, per_batch: int,
-    method: tuple, residual: np.ndarray, table, gradients: np.ndarray, events: np.ndarray,
-):
-    """Runner of :func:`~cloudct.mc.camera_gradient.camera_gradient_batches` on ``backend``:
-    ``method`` = (estimator code, probes, quadratic, mis) of DRT or sample matching, pixels
-    uniform or from the alias ``table``."""
-    if backend == "cuda":
-        from cloudct.mc.cuda_kernels import CameraGradientLauncher
-
-        return CameraGradientLauncher(
-            k, rr_depth, rr_survival, seed, per_batch, method, residual, table, gradients,
-            events,
-        )
-    from cloudct.mc.camera_gradient import camera_gradient_batches
-
-    head = (k.grid, k.bank, k.cams, k.sun, k.periodic, k.ground, rr_depth, rr_survival, seed,
-            per_batch)
-    return _CPURunner(camera_gradient_batches, head,
-                      (*method, residual, table, gradients, events))
 
 
 def sort_by_path_length(lengths: np.ndarray) -> np.ndarray:

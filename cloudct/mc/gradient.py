@@ -24,11 +24,13 @@ import math
 import numpy as np
 import xarray as xr
 
-from cloudct.mc.backend import camera_gradient_runner, forward_runner, resolve_backend
+from cloudct.mc.backend import resolve_backend
 from cloudct.mc.camera_gradient import DRT, SAMPLE_MATCHING
+from cloudct.mc.executor import BatchExecutor, check_executor
 from cloudct.mc.forward import GRADIENT
 from cloudct.mc.pixel_sampling import pixel_table
 from cloudct.mc.render import check_residual, check_sampling, kernel_inputs, run_in_rounds
+from cloudct.mc.runners import camera_gradient_runner, forward_runner
 from cloudct.mc.scene import Scene
 
 #: Gradient estimators by name: path score function (forward), differential ratio tracking
@@ -51,7 +53,7 @@ def score_function_gradient(
     aim_fraction: float | None = None,
     progress: bool | None = None,
     backend: str = "cpu",
-    client=None,
+    executor: BatchExecutor | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """sum_d residual_d dI_d / d beta_cloud per voxel by the path score function.
 
@@ -60,8 +62,9 @@ def score_function_gradient(
     f / q make the estimate unbiased (:mod:`cloudct.mc.detector_sampling`).
 
     ``backend``: ``"cpu"``, ``"cuda"`` or ``"auto"`` (:mod:`cloudct.mc.backend`).
-    ``client``: a Dask client, address or executor to trace the batches on its workers
-    (bitwise the same result, see :mod:`cloudct.distributed`); None: this process.
+    ``executor``: traces the batches elsewhere, e.g. a
+    :class:`cloudct.distributed.DaskExecutor` on Dask workers (bitwise the same result,
+    :mod:`cloudct.mc.executor`); None: this process.
 
     Returns ``(mean, std_error, info)`` with arrays over (x, y, z) and ``info`` holding the
     photon count, path vertices and wall time.
@@ -70,11 +73,9 @@ def score_function_gradient(
     residual = check_residual(residual, scene)
     k = kernel_inputs(medium, scene, aim_fraction)
     per_batch = math.ceil(int(photons) / batches)
-    if client is not None:
-        from cloudct.distributed.core import gradient_batch_means
-
-        batch_means, info = gradient_batch_means(
-            client, k, residual, seed=seed, per_batch=per_batch, batches=batches,
+    if executor is not None:
+        batch_means, info = check_executor(executor).gradient_batch_means(
+            k, residual, seed=seed, per_batch=per_batch, batches=batches,
             rr_depth=rr_depth, rr_survival=rr_survival, backend=backend, progress=progress,
         )
         return (*mean_and_std_error(batch_means), info)
@@ -232,13 +233,13 @@ def gradient_estimate(
     pixel_sampling: str = "uniform",
     progress: bool | None = False,
     backend: str = "cpu",
-    client=None,
+    executor: BatchExecutor | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """sum_d residual_d dI_d / d beta_cloud per voxel by the estimator named ``estimator``
     (one of :data:`ESTIMATORS`), with ``paths`` paths in all.
 
-    ``"score"`` traces ``paths`` forward photons (each serves every pixel; ``client`` may
-    trace them on Dask workers). ``"drt"`` and ``"sm"`` trace camera paths on this machine:
+    ``"score"`` traces ``paths`` forward photons (each serves every pixel; an ``executor`` may
+    trace them elsewhere). ``"drt"`` and ``"sm"`` trace camera paths on this machine:
     ``ceil(paths / n)`` samples per pixel for the n pixels whose residual is not zero, drawn
     per pixel (``pixel_sampling="uniform"``) or, as many in all, in proportion to
     |residual| (``"residual"``; :mod:`cloudct.mc.pixel_sampling`).
@@ -254,12 +255,12 @@ def gradient_estimate(
                              "one forward photon serves every pixel")
         mean, std_error, info = score_function_gradient(
             medium, scene, residual, photons=paths, seed=seed, batches=batches,
-            progress=progress, backend=backend, client=client,
+            progress=progress, backend=backend, executor=executor,
         )
         info["estimator"] = estimator
         return mean, std_error, info
-    if client is not None:
-        raise ValueError(f"estimator {estimator!r} runs on this machine only: no client")
+    if executor is not None:
+        raise ValueError(f"estimator {estimator!r} runs on this machine only: no executor")
     residual = check_residual(residual, scene)
     pixels = max(int(np.count_nonzero(residual)), 1)
     run = drt_gradient if estimator == "drt" else sample_matching_gradient

@@ -34,7 +34,6 @@ hull with the profile scaled to it.
 
 from __future__ import annotations
 
-import argparse
 import math
 from collections.abc import Iterator
 from pathlib import Path
@@ -45,14 +44,13 @@ import xarray as xr
 from cloudct.mc.cameras import CameraArrays, camera_arrays
 from cloudct.mc.render import render
 from cloudct.mc.scene import Scene, check_scene
+from cloudct.measurements import validate_measurements
 from cloudct.medium import (
     DEFAULT_CLOUD_ALBEDO,
     DEFAULT_CLOUD_G,
     cell_edges,
     is_optical,
-    load_medium,
     optical_medium,
-    save_medium,
     validate_medium,
 )
 
@@ -319,7 +317,7 @@ def carve(
 
     Args:
         measurements: a measurement set (images with cameras and sun, see
-            :mod:`data_synth.measurements`).
+            :mod:`cloudct.measurements`).
         grid_template: a medium whose grid (x, y, z and z_bounds) the hull is built on and
             whose air gives the clear-sky background. When the measurements record the box
             of the medium they were made of (``medium_box``), the template's box must be
@@ -348,8 +346,6 @@ def carve(
             from the measured medium's, a bad k, subsamples or profile, or an excess
             profile that is zero in the whole hull.
     """
-    from data_synth.measurements import validate_measurements
-
     validate_measurements(measurements)
     validate_medium(grid_template)
     edges = cell_edges(grid_template)
@@ -721,62 +717,3 @@ def _profile_projections(carved: xr.Dataset, axes) -> None:
         ax.set_ylabel(f"{up} [km]", fontsize=7)
         ax.tick_params(labelsize=6)
         ax.set_title(f"profile summed along {along}", fontsize=8)
-
-
-def _cli_carve(args: argparse.Namespace) -> int:
-    """``cloudct carve``: hull and initial medium from measurements."""
-    from cloudct.mc.render import single_cloud_medium
-    from data_synth.measurements import load_measurements
-
-    measurements = load_measurements(args.measurements)
-    template = single_cloud_medium() if args.medium is None else load_medium(args.medium)
-    output = Path(args.output)
-    if output.exists() and not args.overwrite:
-        raise FileExistsError(f"{output} exists (use --overwrite)")
-    carved = carve(
-        measurements, template, k=args.k, threshold=args.threshold, profile=args.profile,
-        fit_photons=args.fit_photons if args.extinction is None else None,
-    )
-    medium = initial_medium(carved, template, args.extinction)
-    save_medium(medium, output, overwrite=args.overwrite)
-    figure = "" if args.figure is None else (
-        f" and {save_hull_figure(carved, measurements, args.figure)}"
-    )
-    print(
-        f"wrote {output}{figure}: hull of {int(carved['hull'].sum())} of "
-        f"{carved['hull'].size} voxels (k = {carved.attrs['k']} of {carved.attrs['views']} "
-        f"views), {carved.attrs['profile']} profile, mean cloud extinction "
-        f"{float(medium['cloud_extinction'].values[carved['hull'].values > 0].mean()):.4g} /km"
-    )
-    return 0
-
-
-def register_cli(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``cloudct carve``."""
-    p = subparsers.add_parser(
-        "carve",
-        help="space-carve the cloud's hull from measurements into an initial medium",
-        description="Space carving (seed paper Sec. 6.1.1): voxels seen as cloudy by at "
-        "least K views form the hull, filled in proportion to the faintest excess radiance "
-        "in which the views see each voxel (or with a constant extinction) at the mean "
-        "extinction whose rendered images match the measured brightness (or a given one), on "
-        "a template medium's grid.",
-    )
-    p.add_argument("measurements", help="measurement netCDF (from `cloudct synth`)")
-    p.add_argument("-o", "--output", default="init.nc", help="output medium netCDF")
-    p.add_argument("--medium", help="template medium netCDF giving the grid and the air "
-                   "(default: the bundled single cloud)")
-    p.add_argument("--k", type=int,
-                   help="views that must see a voxel as cloudy (default: all but one)")
-    p.add_argument("--threshold", type=float, help="cloudy-pixel radiance above the "
-                   "clear-sky background (default: per-view rule)")
-    p.add_argument("--profile", choices=PROFILES, default="excess",
-                   help="shape of the extinction in the hull: 'excess' (soft carving, the "
-                   "default) or 'constant' (the seed paper's)")
-    p.add_argument("--extinction", type=float,
-                   help="mean cloud extinction in the hull [1/km] (default: fitted)")
-    p.add_argument("--fit-photons", type=int, default=FIT_PHOTONS,
-                   help="photons per trial render of the extinction fit")
-    p.add_argument("--figure", help="PNG of the views with the cloudy pixels and the hull")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
-    p.set_defaults(func=_cli_carve)

@@ -22,6 +22,7 @@ import numpy as np
 import xarray as xr
 from tqdm.auto import tqdm
 
+from cloudct.distributed.executor import executor
 from cloudct.mc.cameras import Camera
 from cloudct.mc.gradient import ESTIMATORS, gradient_estimate
 from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS
@@ -503,7 +504,7 @@ class Retrieval:
                     Scene.from_dataset(data), backend=self.backend, **settings
                 )
             else:  # the stores live on the workers
-                from cloudct.distributed import DistributedRecycler
+                from cloudct.distributed.recycling import DistributedRecycler
 
                 self._recycler = DistributedRecycler(
                     Scene.from_dataset(data), client=self.client, **settings
@@ -526,7 +527,8 @@ class Retrieval:
                 medium, Scene.from_dataset(data), residual(ev.images),
                 estimator=config.estimator[s.stage], paths=gradient_photons,
                 seed=2 * self._seed(s.iteration) + 1, pixel_sampling=config.pixel_sampling,
-                backend=self.backend, client=self.client,
+                backend=self.backend,
+                executor=None if self.client is None else executor(self.client),
             )
             gradient_seconds = info["wall_time"]
         return (loss, gradient, float(ev.info["resampled"]), float(ev.info["ess_fraction"]),

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
+from cloudct.distributed.executor import executor
 from cloudct.mc.gradient import gradient_estimate
 from cloudct.mc.render import render
 from cloudct.mc.scene import Scene
@@ -108,20 +109,22 @@ def loss_and_gradient(
     ``photons`` render the images of the residual (seed ``2 seed``); ``gradient_photons``
     (default: ``photons``) paths estimate the gradient on independent paths (seed ``2 seed
     + 1``) by ``estimator`` with ``pixel_sampling``
-    (:func:`cloudct.mc.gradient.gradient_estimate`). ``backend`` and ``client`` (a Dask
-    client, address or executor) as for :func:`cloudct.mc.render.render`; with a client the
-    medium is scattered once for both.
+    (:func:`cloudct.mc.gradient.gradient_estimate`). ``backend`` as for
+    :func:`cloudct.mc.render.render`; ``client`` (a Dask client, scheduler address or
+    :class:`cloudct.distributed.DaskExecutor`) traces both on its workers, with the medium
+    scattered once for both.
     """
+    spread = None if client is None else executor(client)
     scene = Scene.from_dataset(measurements)
     w = pixel_weights(measurements, weights, mask)
     images = render(
         medium, scene, photons=photons, seed=2 * seed, batches=batches, progress=progress,
-        backend=backend, client=client,
+        backend=backend, executor=spread,
     )
     loss, residual = image_loss(images["radiance"].values, measurements["radiance"].values, w)
     mean, std_error, info = gradient_estimate(
         medium, scene, residual, estimator=estimator, paths=gradient_photons or photons,
         seed=2 * seed + 1, batches=batches, pixel_sampling=pixel_sampling, progress=progress,
-        backend=backend, client=client,
+        backend=backend, executor=spread,
     )
     return LossGradient(loss, mean, std_error, images, residual, info)

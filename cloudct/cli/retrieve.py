@@ -1,4 +1,5 @@
-"""``cloudct retrieve``, ``cloudct report`` and ``cloudct demo``."""
+"""``cloudct retrieve``, ``cloudct report`` and ``cloudct demo``: the retrieval, its report,
+and the whole chain on the bundled cloud."""
 
 from __future__ import annotations
 
@@ -8,11 +9,15 @@ from pathlib import Path
 
 import xarray as xr
 
+from cloudct.cli.options import add_distributed_options
+from cloudct.distributed import close_client, connect
 from cloudct.mc.gradient import ESTIMATORS
 from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS
-from cloudct.mc.render import add_distributed_options
-from cloudct.medium import load_medium
+from cloudct.mc.render import single_cloud_medium
+from cloudct.measurements import load_measurements, save_measurements, synthesize_measurements
+from cloudct.medium import load_medium, save_medium
 from cloudct.netcdf import load_netcdf, require_variables
+from cloudct.retrieval.carving import carve, initial_medium
 from cloudct.retrieval.loop import (
     AVERAGING,
     OPTIMIZERS,
@@ -59,8 +64,6 @@ def config_from_options(args: argparse.Namespace, **settings) -> RetrievalConfig
 
 
 def _cli_retrieve(args: argparse.Namespace) -> int:
-    from data_synth.measurements import load_measurements
-
     output = Path(args.output)
     _refuse_overwrite(output, args.overwrite)
     measurements = load_measurements(args.measurements)
@@ -69,11 +72,8 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
     checkpoint = Path(args.checkpoint or output.with_suffix(".checkpoint.nc"))
     if not args.resume:
         _refuse_overwrite(checkpoint, args.overwrite)
-    client = None
-    if args.scheduler is not None or args.workers is not None:
-        from cloudct.distributed.core import close_client, connect
-
-        client = connect(args.scheduler, args.workers, backend=args.backend)
+    client = connect(args.scheduler, args.workers, backend=args.backend)
+    if client is not None:
         print(f"tracing on {client}")
     try:
         where = {"backend": args.backend, "client": client}
@@ -97,8 +97,6 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
 
 
 def _cli_report(args: argparse.Namespace) -> int:
-    from data_synth.measurements import load_measurements
-
     result = load_netcdf(args.result, "result")
     require_variables(result, ("cloud_extinction", "log_loss", "log_seconds"), "result",
                       args.result)
@@ -111,11 +109,6 @@ def _cli_report(args: argparse.Namespace) -> int:
 
 def _cli_demo(args: argparse.Namespace) -> int:
     """The whole chain on the bundled single cloud: measurements, carving, retrieval, report."""
-    from cloudct.mc.render import single_cloud_medium
-    from cloudct.medium import save_medium
-    from cloudct.retrieval.carving import carve, initial_medium
-    from data_synth.measurements import save_measurements, synthesize_measurements
-
     out = Path(args.output)
     _refuse_overwrite(out / "result.nc", args.overwrite)
     out.mkdir(parents=True, exist_ok=True)

@@ -31,7 +31,6 @@ reason.
 
 from __future__ import annotations
 
-import argparse
 import importlib.resources
 import os
 from pathlib import Path
@@ -39,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from cloudct.medium import SPACING_RTOL, microphysical_medium, save_medium
+from cloudct.medium import SPACING_RTOL, microphysical_medium
 
 #: Attribution of the bundled single cloud (see cloudct/data/README.md).
 BUNDLED_SOURCE = (
@@ -157,37 +156,6 @@ def bundled_single_cloud() -> xr.Dataset:
     resource = importlib.resources.files("cloudct") / "data" / "rico32x37x26.txt"
     with importlib.resources.as_file(resource) as path:
         return read_jpl_les(path, source=BUNDLED_SOURCE)
-
-
-def register_cli(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``cloudct les2nc FILE -o OUT [--overwrite] [--source TEXT]``."""
-    parser = subparsers.add_parser(
-        "les2nc",
-        help="convert an LES text file to a medium netCDF file",
-        description=(
-            "Read an LES text file (JPL-LES/pyshdom format or SHDOM particle file, "
-            "detected automatically) and write it as a cloudct medium netCDF file."
-        ),
-    )
-    parser.add_argument("file", type=Path, help="LES text file")
-    parser.add_argument(
-        "-o", "--output", type=Path, required=True, help="medium netCDF file to write"
-    )
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
-    parser.add_argument("--source", help="attribution stored in the 'source' attribute")
-    parser.set_defaults(func=_les2nc)
-
-
-def _les2nc(args: argparse.Namespace) -> int:
-    ds = read_les(args.file, source=args.source)
-    save_medium(ds, args.output, overwrite=args.overwrite)
-    sizes = " x ".join(str(ds.sizes[d]) for d in ("x", "y", "z"))
-    cloudy = int((ds["lwc"] > 0).sum())
-    print(
-        f"wrote {args.output}: {sizes} cells, {cloudy} cloudy, "
-        f"max LWC {float(ds['lwc'].max()):.4g} g m-3"
-    )
-    return 0
 
 
 # ---------------------------------------------------------------------------------------

@@ -31,7 +31,6 @@ noise can give slightly negative values, as a dark-subtracted camera does.
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 from dataclasses import dataclass
@@ -41,12 +40,12 @@ import numpy as np
 import xarray as xr
 
 from cloudct.mc.cameras import cameras_from_dataset
-from cloudct.mc.render import RADIANCE_UNITS, render, single_cloud_medium
-from cloudct.mc.scene import Scene, load_scene, single_cloud_scene
-from cloudct.medium import cell_edges, is_optical, load_medium, validate_medium
+from cloudct.mc.render import RADIANCE_UNITS, render
+from cloudct.mc.scene import Scene, single_cloud_scene
+from cloudct.medium import cell_edges, is_optical, validate_medium
 from cloudct.netcdf import load_netcdf
+from cloudct.optics import to_optical
 from cloudct.physics.mie import DEFAULT_WAVELENGTH
-from cloudct.physics.optics import to_optical
 
 #: Default number of photons of a synthetic measurement (forward estimator).
 DEFAULT_PHOTONS = 10_000_000
@@ -306,57 +305,3 @@ def load_measurements(path: str | os.PathLike) -> xr.Dataset:
     except MeasurementError as err:
         raise MeasurementError(f"measurement file {path}: {err}") from None
     return ds
-
-
-def _cli_synth(args: argparse.Namespace) -> int:
-    """``cloudct synth``: synthetic measurements of a medium, to netCDF."""
-    if args.read_noise is not None and args.noise_electrons is None:
-        raise ValueError("--read-noise needs --noise-electrons (the signal level)")
-    medium = single_cloud_medium() if args.medium is None else load_medium(args.medium)
-    scene = None if args.scene is None else load_scene(args.scene)
-    noise = None
-    if args.noise_electrons is not None:
-        noise = NoiseModel(args.noise_electrons, read_noise=args.read_noise or 0.0)
-    output = Path(args.output)
-    if output.exists() and not args.overwrite:
-        raise FileExistsError(f"{output} exists (use --overwrite)")
-    ds = synthesize_measurements(
-        medium, scene, photons=args.photons, seed=args.seed, noise=noise,
-        wavelength=args.wavelength, progress=None,
-    )
-    save_measurements(ds, output, overwrite=args.overwrite)
-    noise_text = "no camera noise" if noise is None else (
-        f"{noise.electrons:g} e- at radiance 1/pi, read noise {noise.read_noise:g} e-"
-    )
-    print(
-        f"wrote {output}: {ds.sizes['view']} views of {ds.sizes['row']}x{ds.sizes['col']}, "
-        f"{ds.attrs['photons']} photons, {noise_text}"
-    )
-    return 0
-
-
-def register_cli(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``cloudct synth``."""
-    p = subparsers.add_parser(
-        "synth",
-        help="synthesize noisy multi-view measurements of a medium",
-        description="Render a medium (default: the bundled single cloud) for a scene "
-        "(default: the seed paper's nine cameras) with many photons, add camera noise "
-        "(Poisson photo-electrons at the stated signal level plus Gaussian read noise), and "
-        "write a measurement netCDF.",
-    )
-    p.add_argument("medium", nargs="?", help="medium netCDF (default: bundled single cloud)")
-    p.add_argument("-o", "--output", default="measurements.nc", help="output netCDF")
-    p.add_argument("--scene", help="scene netCDF from `cloudct scene` (default: nine cameras)")
-    p.add_argument("--photons", type=int, default=DEFAULT_PHOTONS, help="forward photons")
-    p.add_argument("--seed", type=int, default=0, help="seed of the render and the noise")
-    p.add_argument(
-        "--noise-electrons", type=float, metavar="E",
-        help="mean photo-electrons at radiance 1/pi (white plate facing the sun); "
-        "default: no camera noise",
-    )
-    p.add_argument("--read-noise", type=float, metavar="R", help="read noise [electrons rms]")
-    p.add_argument("--wavelength", type=float, default=DEFAULT_WAVELENGTH,
-                   help="wavelength [micron] (default %(default)s)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
-    p.set_defaults(func=_cli_synth)

@@ -1,7 +1,8 @@
 """The ``cloudct`` command line: one subcommand per everyday job.
 
-Each subcommand lives next to the code it drives and is registered here by a
-``register_cli(subparsers)`` function of its module.
+The command line is the top layer (docs/architecture.md): each module of this package holds
+the subcommands of one job and registers them with a ``register_cli(subparsers)`` function;
+the library below never imports it.
 """
 
 from __future__ import annotations
@@ -12,11 +13,11 @@ import sys
 
 #: Modules that contribute subcommands, in the order ``--help`` lists them.
 COMMAND_MODULES = (
-    "data_synth.les",
-    "cloudct.mc.render",
-    "data_synth.measurements",
-    "cloudct.retrieval.carving",
-    "cloudct.retrieval.cli",
+    "cloudct.cli.media",
+    "cloudct.cli.render",
+    "cloudct.cli.synth",
+    "cloudct.cli.carve",
+    "cloudct.cli.retrieve",
 )
 
 

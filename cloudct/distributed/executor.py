@@ -1,0 +1,217 @@
+"""The Dask executor: runs the batch tasks of a call on a cluster's workers, keeps what it
+scattered to them for the next call, and is what the engine's ``executor=`` takes
+(:class:`cloudct.mc.executor.BatchExecutor`)."""
+
+from __future__ import annotations
+
+import math
+import weakref
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+
+from cloudct.distributed.batches import (
+    BatchPart,
+    CallStats,
+    distributed_backward,
+    distributed_forward,
+    nbytes,
+    stats_info,
+)
+from cloudct.distributed.cluster import DistributedError, _import_distributed
+from cloudct.mc.forward import GRADIENT, RENDER
+
+
+class DaskExecutor:
+    """Runs batch tasks on a Dask cluster for the cloudct API calls.
+
+    ``client`` is a :class:`distributed.Client`, a scheduler address, or None for the
+    current default client. A call is split into about ``tasks_per_worker`` tasks per
+    worker (several, so that a slow or busy worker takes fewer), but never into tasks of
+    fewer batches than a worker has numba threads (its kernels are parallel over the
+    batches of a task); ``batches_per_task`` overrides both (e.g. one task per GPU worker
+    and call). None of this changes any result.
+    Every API call that takes ``client=`` also takes a ``DaskExecutor``.
+    """
+
+    def __init__(self, client=None, *, tasks_per_worker: int = 4,
+                 batches_per_task: int | None = None, cache_size: int = 2):
+        distributed = _import_distributed()
+        if client is None:
+            client = distributed.default_client()
+        elif isinstance(client, str):
+            client = distributed.Client(client)
+        self.client = client
+        self.tasks_per_worker = int(tasks_per_worker)
+        self.batches_per_task = batches_per_task
+        self._cache: OrderedDict[str, tuple[Any, int]] = OrderedDict()
+        self._cache_size = int(cache_size)
+        #: Bookkeeping of every call (CallStats), in order.
+        self.calls: list[CallStats] = []
+        self._threads: tuple[frozenset, int] | None = None
+        #: The last call's task results without their arrays (timings, worker processes).
+        self.last_parts: list[BatchPart] = []
+
+    @property
+    def workers(self) -> int:
+        """Number of workers connected now (at least 1: waits for one)."""
+        n = len(self.client.scheduler_info(n_workers=-1)["workers"])
+        if n == 0:
+            self.client.wait_for_workers(1)
+            n = len(self.client.scheduler_info(n_workers=-1)["workers"])
+        return n
+
+    def ranges(self, total: int) -> list[tuple[int, int]]:
+        """Split items 0 .. total - 1 into contiguous (start, count) task ranges."""
+        if self.batches_per_task is not None:
+            per = max(1, int(self.batches_per_task))
+        else:
+            per = max(self.worker_threads(),
+                      math.ceil(total / (self.tasks_per_worker * self.workers)))
+        return [(s, min(per, total - s)) for s in range(0, total, per)]
+
+    def worker_threads(self) -> int:
+        """The smallest number of numba threads of the workers (asked once per set of
+        workers)."""
+        addresses = frozenset(self.client.scheduler_info(n_workers=-1)["workers"])
+        if self._threads is None or self._threads[0] != addresses:
+            try:
+                threads = self.client.run(_numba_threads)
+            except Exception:  # a worker going away while asked: assume one thread
+                threads = {}
+            self._threads = (addresses, max(1, min(threads.values(), default=1)))
+        return self._threads[1]
+
+    def share(self, obj: Any, *, cache: bool = False) -> tuple[Any, int]:
+        """Scatter ``obj`` to every worker once; returns ``(future, bytes sent)``. With
+        ``cache``, an object of the same content scattered before is re-used (0 bytes)."""
+        key = None
+        if cache:
+            from dask.base import tokenize
+
+            key = tokenize(obj)
+            if key in self._cache and self._cache[key][0].status == "finished":
+                self._cache.move_to_end(key)
+                return self._cache[key][0], 0
+        workers = self.workers
+        [future] = self.client.scatter([obj], broadcast=True, hash=False)
+        sent = nbytes(obj) * workers
+        if cache:
+            self._cache[key] = (future, sent)
+            while len(self._cache) > self._cache_size:
+                self._cache.popitem(last=False)
+        return future, sent
+
+    def submit(self, func, *args, key: str, **kwargs):
+        """Submit one task (impure: it always runs)."""
+        return self.client.submit(func, *args, key=key, pure=False, **kwargs)
+
+    def gather(self, futures: list, progress_total: int = 0, progress_of=None,
+               progress: bool | None = False, unit: str = "photon", desc: str = "") -> list:
+        """Results of ``futures`` in their order, with a progress bar as they complete.
+        Raises :class:`DistributedError` when workers died too often or a task was
+        cancelled (a dying worker can take the call's scattered inputs with it, and the
+        scheduler then cancels the tasks that need them), and re-raises the error of a task
+        that failed; cancels the other tasks then."""
+        distributed = _import_distributed()
+        from distributed.client import FutureCancelledError
+        from tqdm.auto import tqdm
+
+        disable = None if progress is None else not progress
+        try:
+            with tqdm(total=progress_total, disable=disable, unit=unit, desc=desc) as bar:
+                for future in distributed.as_completed(futures):
+                    if future.status == "error":
+                        future.result()  # raises the task's error
+                    if progress_of is not None:
+                        bar.update(progress_of(future))
+            return self.client.gather(futures)
+        except distributed.KilledWorker as err:
+            task = getattr(err, "task", err.args[0] if err.args else "a task")
+            raise DistributedError(
+                f"a Dask worker died while running {task!r} (more often than "
+                "distributed.scheduler.allowed-failures allows); the call was abandoned and "
+                "no partial result is returned"
+            ) from err
+        except FutureCancelledError as err:
+            raise DistributedError(
+                f"the Dask scheduler cancelled a task of this call ({err}); when a worker "
+                "dies, the data scattered to it can be lost with it. The call was abandoned "
+                "and no partial result is returned"
+            ) from err
+        finally:
+            self.client.cancel([f for f in futures if not f.done()])
+
+    def close(self) -> None:
+        """Release scattered data (the client stays open)."""
+        self._cache.clear()
+
+    def render_batch_means(
+        self, k, *, method: str, seed: int, per_batch: int, batches: int, rr_depth: int,
+        rr_survival: float, backend: str, progress: bool | None,
+    ) -> tuple[np.ndarray, dict]:
+        """What :func:`cloudct.mc.render.render_batches` returns, traced on the workers: the
+        images of each batch and the run's attributes (plus the call's bookkeeping)."""
+        if method == "forward":
+            values, events, stats = distributed_forward(
+                self, k, mode=RENDER, seed=seed, per_batch=per_batch, batches=batches,
+                rr_depth=rr_depth, rr_survival=rr_survival, backend=backend, progress=progress,
+            )
+        else:
+            values, events, stats = distributed_backward(
+                self, k, seed=seed, per_batch=per_batch, batches=batches, rr_depth=rr_depth,
+                rr_survival=rr_survival, backend=backend, progress=progress,
+            )
+        info = dict(
+            method=method, photons=per_batch * batches, seed=seed, batches=batches,
+            events=int(events.sum()), wall_time=stats.wall_time, rr_depth=rr_depth,
+            rr_survival=rr_survival, aim_fraction=k.cams.aim_fraction, backend=stats.backend,
+            **stats_info(stats),
+        )
+        return values / per_batch, info
+
+    def gradient_batch_means(
+        self, k, residual: np.ndarray, *, seed: int, per_batch: int, batches: int,
+        rr_depth: int, rr_survival: float, backend: str, progress: bool | None,
+    ) -> tuple[np.ndarray, dict]:
+        """The per-batch score-function gradients of
+        :func:`cloudct.mc.gradient.score_function_gradient`, traced on the workers, and its
+        ``info`` (plus the call's bookkeeping)."""
+        values, events, stats = distributed_forward(
+            self, k, mode=GRADIENT, seed=seed, per_batch=per_batch, batches=batches,
+            rr_depth=rr_depth, rr_survival=rr_survival, residual=residual, backend=backend,
+            progress=progress, desc="gradient",
+        )
+        info = {"photons": per_batch * batches, "events": int(events.sum()),
+                "wall_time": stats.wall_time, "backend": stats.backend,
+                "aim_fraction": k.cams.aim_fraction, **stats_info(stats)}
+        return values / per_batch, info
+
+
+def _numba_threads() -> int:
+    import numba
+
+    return int(numba.config.NUMBA_NUM_THREADS)
+
+
+_EXECUTORS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_BY_ADDRESS: dict[str, DaskExecutor] = {}
+
+
+def executor(client) -> DaskExecutor:
+    """A :class:`DaskExecutor` for ``client`` (a client, an address or an executor); the
+    same one for every call with the same client, so that a medium scattered by one call is
+    re-used by the next (e.g. the images and the gradient of one iteration)."""
+    if isinstance(client, DaskExecutor):
+        return client
+    if client is None:
+        return DaskExecutor(None)
+    if isinstance(client, str):
+        if client not in _BY_ADDRESS:
+            _BY_ADDRESS[client] = DaskExecutor(client)
+        return _BY_ADDRESS[client]
+    ex = _EXECUTORS.get(client)
+    if ex is None:
+        ex = _EXECUTORS[client] = DaskExecutor(client)
+    return ex
