@@ -2,10 +2,10 @@
 
 Imported only when a replay asks for the CUDA back end (:mod:`cloudct.recycling.replay`);
 it needs numba-cuda. As in :mod:`cloudct.mc.cuda_kernels`, the kernels hold no physics:
-each thread calls :func:`cloudct.recycling.kernels.replay_path` (images, or the score-function
-gradient, of one stored path under the current medium) or
-:func:`~cloudct.recycling.kernels.path_log_ratio`, the ``@njit`` routines of the CPU replay,
-which numba-cuda compiles for the GPU. Writes into the per-batch images and gradients go
+each thread calls :func:`cloudct.recycling.replay_kernels.replay_path` (images, or the
+score-function gradient, of one stored path under the current medium) or
+:func:`~cloudct.recycling.path_terms.path_log_ratio`, the ``@njit`` routines of the CPU
+replay, which numba-cuda compiles for the GPU. Writes into the per-batch images and gradients go
 through :func:`cloudct.mc.accumulate.add_to` (atomic on the GPU).
 
 Thread order (seed paper Sec. 5.3, path sorting). A store keeps batch b's paths in storage
@@ -19,7 +19,7 @@ so that consecutive threads take consecutive slots and a warp replays paths of s
 the same. Each thread writes the log correction factor of its path at its photon-order
 position and adds its event count to its batch.
 
-Per-path scratch: :func:`~cloudct.recycling.kernels.replay_path` writes ``scratch[k - a]``
+Per-path scratch: :func:`~cloudct.recycling.replay_kernels.replay_path` writes ``scratch[k - a]``
 for its records k in ``a .. z - 1``; every thread gets the slice ``scratch[a:]`` of one
 float64[records] device array, so the paths' scratch rooms do not overlap. The camera
 connections are walked twice in GRADIENT mode (no :class:`~cloudct.mc.traversal.Trail`; the
@@ -40,7 +40,8 @@ from numba import cuda, njit
 import cloudct.mc.cuda_kernels as ck
 from cloudct.mc.cuda_kernels import device_scene, device_zeros, to_device, to_host
 from cloudct.mc.forward import GRADIENT, RENDER
-from cloudct.recycling.kernels import path_log_ratio, replay_path
+from cloudct.recycling.path_terms import path_log_ratio
+from cloudct.recycling.replay_kernels import replay_path
 
 # --------------------------------------------------------------------------------------
 # Kernels
@@ -179,9 +180,9 @@ def _thread_order(resident: DeviceStore, sort_paths: bool | None):
 
 
 class ReplayLauncher(ck._Launcher):
-    """The CUDA counterpart of :func:`~cloudct.recycling.kernels.replay_render_batches`
+    """The CUDA counterpart of :func:`~cloudct.recycling.replay_kernels.replay_render_batches`
     (``mode`` RENDER: ``out`` the per-batch images) and
-    :func:`~cloudct.recycling.kernels.replay_gradient_batches` (GRADIENT: ``out`` the
+    :func:`~cloudct.recycling.replay_kernels.replay_gradient_batches` (GRADIENT: ``out`` the
     per-batch gradients, weighted by ``residual``), as ``run(first, last)`` for
     :func:`~cloudct.recycling.store.run_batches`. ``k`` is the
     :class:`~cloudct.mc.render.KernelInputs` and ``beta`` the flat total extinction of the
@@ -240,7 +241,7 @@ def log_weights(
     threads_per_block: int | None = None,
 ) -> np.ndarray:
     """log r of every stored path (photon order) on the device: the CUDA counterpart of
-    :func:`~cloudct.recycling.kernels.log_ratio_batches`, same arguments as
+    :func:`~cloudct.recycling.replay_kernels.log_ratio_batches`, same arguments as
     :class:`ReplayLauncher`."""
     resident = device_store(store)
     ck._check_fits(8 * store.paths, "log r per path")

@@ -32,8 +32,8 @@ from cloudct.mc.backend import resolve_backend
 from cloudct.mc.forward import GRADIENT, RENDER
 from cloudct.mc.render import KernelInputs, check_residual, images_dataset, kernel_inputs
 from cloudct.medium import cell_edges
-from cloudct.recycling.kernels import (
-    flat_total_extinction,
+from cloudct.recycling.path_terms import flat_total_extinction
+from cloudct.recycling.replay_kernels import (
     log_ratio_batches,
     replay_gradient_batches,
     replay_render_batches,

@@ -1,6 +1,6 @@
 """The path store: sampled forward paths kept for re-evaluation under other media.
 
-A store is a structure of arrays in CSR form (:class:`~cloudct.recycling.kernels.StoreArrays`):
+A store is a structure of arrays in CSR form (:class:`~cloudct.recycling.path_terms.StoreArrays`):
 per path the offset of its records; per record (ENTRY, each SCATTER or GROUND vertex, and
 the ESCAPE of a path that leaves the medium) the position, the direction of the segment
 arriving there, that segment's length, the kind, the flat voxel index, and the reference
@@ -49,11 +49,10 @@ import xarray as xr
 from cloudct.mc.forward import ENTRY, ESCAPE, GROUND, SCATTER, PathRecord
 from cloudct.mc.render import kernel_inputs, run_in_rounds
 from cloudct.mc.scene import Scene
-from cloudct.recycling.kernels import (
-    StoreArrays,
+from cloudct.recycling.path_terms import StoreArrays, flat_total_extinction
+from cloudct.recycling.record_kernels import (
     connection_batches,
     count_records,
-    flat_total_extinction,
     measure_segments,
     reference_terms,
     write_crossings,
