@@ -64,7 +64,7 @@ def optics_pair(microphysics) -> dict:
     from scenes import single_cloud_optics
 
     return {"hg": single_cloud_optics(microphysics, "HG g = 0.85"),
-            "mie": to_optical(microphysics, phase="mie")}
+            "mie": to_optical(microphysics, optics="mie")}
 
 
 def scenes() -> dict:
@@ -169,7 +169,7 @@ def piece_check() -> dict:
 
     from cloudct.mc.render import render
 
-    medium = to_optical(piece_microphysics(), phase="mie")
+    medium = to_optical(piece_microphysics(), optics="mie")
     scene = scene_of_piece(medium)
     plain = [binned(render_batches(medium, scene, photons=3_200_000, seed=s, batches=64,
                                    aim_fraction=0.0, progress=False)[0]) for s in (11, 12, 13, 14)]

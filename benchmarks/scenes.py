@@ -47,10 +47,7 @@ PATCH_START, PATCH_SIZE = 16, 32
 
 def single_cloud_optics(microphysics: xr.Dataset, title: str) -> xr.Dataset:
     """The optical medium of a microphysical one with the single cloud's optics."""
-    optical = to_optical(microphysics, phase="hg", g=0.85)
-    optical["cloud_albedo"] = xr.full_like(optical["cloud_extinction"], 0.99).assign_attrs(
-        units="1", long_name="cloud single-scattering albedo"
-    )
+    optical = to_optical(microphysics, optics="hg")
     optical.attrs["title"] = title
     return optical
 

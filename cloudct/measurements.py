@@ -42,7 +42,7 @@ import xarray as xr
 from cloudct.mc.cameras import cameras_from_dataset
 from cloudct.mc.render import RADIANCE_UNITS, render
 from cloudct.mc.scene import Scene, single_cloud_scene
-from cloudct.medium import cell_edges, is_optical, validate_medium
+from cloudct.medium import cell_edges, validate_medium
 from cloudct.netcdf import load_netcdf
 from cloudct.optics import to_optical
 from cloudct.physics.mie import DEFAULT_WAVELENGTH
@@ -117,6 +117,7 @@ def synthesize_measurements(
     noise: NoiseModel | None = None,
     noise_seed: int | None = None,
     wavelength: float = DEFAULT_WAVELENGTH,
+    optics: str | None = None,
     batches: int = 32,
     progress: bool | None = None,
 ) -> xr.Dataset:
@@ -133,6 +134,8 @@ def synthesize_measurements(
             Carlo error is then the only noise).
         noise_seed: seed of the noise draws (numpy's default generator); default ``seed``.
         wavelength: [micron]. An optical medium that records its ``wavelength`` must match.
+        optics: the cloud optics of a microphysical medium (:func:`cloudct.optics.to_optical`;
+            None: its recorded choice, else the default). The file records the optics used.
         batches: independent batches of the render (for its standard errors).
         progress: show a progress bar (None: only on a terminal).
 
@@ -145,9 +148,8 @@ def synthesize_measurements(
     validate_medium(medium)
     if not (math.isfinite(wavelength) and wavelength > 0.0):
         raise ValueError(f"wavelength must be positive, got {wavelength}")
-    if not is_optical(medium):
-        medium = to_optical(medium, wavelength=wavelength)
-    elif "wavelength" in medium.attrs and not np.isclose(
+    medium = to_optical(medium, wavelength=wavelength, optics=optics)  # optical: as it is
+    if "wavelength" in medium.attrs and not np.isclose(
         float(medium.attrs["wavelength"]), wavelength
     ):
         raise ValueError(

@@ -20,6 +20,8 @@ import numpy as np
 import xarray as xr
 
 from cloudct.medium import (
+    DEFAULT_CLOUD_ALBEDO,
+    DEFAULT_CLOUD_G,
     DEFAULT_VEFF,
     cell_edges,
     is_microphysical,
@@ -33,6 +35,45 @@ from cloudct.physics.mixing import OpticalGrid
 from cloudct.physics.phase import PhaseBank, phase_bank
 
 GRID = ("x", "y", "z")
+
+#: The cloud optics a microphysical medium can be given (:func:`to_optical`).
+OPTICS = ("hg", "mie")
+#: The documented default: the seed paper's optics, with which every retrieval in
+#: docs/benchmarks.md was measured. ``"mie"`` is the physically exact choice; its peaked
+#: phase functions make the gradient much noisier per photon (docs/benchmarks.md, "Mie
+#: optics").
+DEFAULT_OPTICS = "hg"
+
+
+def optics_choice(medium: xr.Dataset, optics: str | None = None) -> str:
+    """The cloud optics to give ``medium``: ``optics`` when given, else the choice recorded
+    in its ``optics`` attribute, else :data:`DEFAULT_OPTICS`."""
+    choice = optics if optics is not None else medium.attrs.get("optics", DEFAULT_OPTICS)
+    if choice not in OPTICS:
+        where = "optics" if optics is not None else "the medium's optics attribute"
+        raise ValueError(f"{where} must be one of {OPTICS}, got {choice!r}")
+    return choice
+
+
+def with_optics(medium: xr.Dataset, optics: str | None) -> xr.Dataset:
+    """``medium`` with the cloud optics ``optics`` chosen (None: as it is). A microphysical
+    medium records the choice in its ``optics`` attribute and is converted where it is used
+    (at that use's wavelength); an optical medium already has its optics, and a different
+    choice is an error."""
+    if optics is None:
+        return medium
+    if is_optical(medium):
+        return to_optical(medium, optics=optics)  # refuses a different choice
+    return medium.assign_attrs(optics=optics_choice(medium, optics))
+
+
+def optics_name(medium: xr.Dataset) -> str:
+    """The name of the cloud optics ``medium`` has or will be given, for the attributes of
+    the files made from it: its recorded ``optics`` if optical (``"unrecorded"`` where a
+    medium built by hand records none), else :func:`optics_choice`."""
+    if is_optical(medium):
+        return str(medium.attrs.get("optics", "unrecorded"))
+    return optics_choice(medium)
 
 
 def _single_veff(medium: xr.Dataset) -> float:
@@ -61,36 +102,42 @@ def to_optical(
     mie_table: xr.Dataset | None = None,
     *,
     wavelength: float | None = None,
-    phase: str = "mie",
-    g: float = 0.85,
+    optics: str | None = None,
 ) -> xr.Dataset:
     """Optical medium (cloud extinction, albedo, phase function) from a microphysical one.
 
     Args:
         medium: a medium Dataset with ``lwc`` [g m-3] and ``reff`` [micron]. A medium that
-            is already optical only (no ``lwc``/``reff``) is returned unchanged.
+            is already optical is returned unchanged (an ``optics`` that differs from the
+            one it records is an error).
         mie_table: a table from :func:`cloudct.physics.mie.mie_table`; by default the table
             for ``wavelength`` and the medium's ``veff`` (default 0.1).
         wavelength: [micron]; default 0.672, or the table's when ``mie_table`` is given
             (a different value is an error).
-        phase: ``"mie"`` for the tabulated Mie phase functions (nearest table r_eff per
-            cell), ``"hg"`` for Henyey-Greenstein with asymmetry parameter ``g``.
-        g: HG asymmetry parameter, used with ``phase="hg"``.
+        optics: one of :data:`OPTICS` (None: :func:`optics_choice`). ``"mie"``: the table's
+            albedo and tabulated Mie phase functions (nearest table r_eff per cell);
+            ``"hg"``: the seed paper's optics, Henyey-Greenstein with g =
+            :data:`DEFAULT_CLOUD_G` and cloud albedo :data:`DEFAULT_CLOUD_ALBEDO`. The extinction is
+            the table's for both.
 
     Returns:
         A validated optical medium on the same grid, keeping the air, the microphysics and
-        the attributes, with the ``wavelength`` attribute set.
+        the attributes, with the ``wavelength`` attribute set, ``optics`` set to the choice
+        and ``optics_description`` saying what it is.
 
     Raises:
-        ValueError: r_eff outside the table's range where lwc > 0, an unknown ``phase``, or
-            a wavelength or veff that differs from the given table's.
+        ValueError: r_eff outside the table's range where lwc > 0, an unknown ``optics``,
+            or a wavelength or veff that differs from the given table's.
     """
+    if is_optical(medium):
+        recorded = medium.attrs.get("optics")
+        if optics is not None and recorded is not None and optics != recorded:
+            raise ValueError(f"the medium is already optical with optics {recorded!r}; "
+                             f"{optics!r} applies to a microphysical medium (lwc, reff)")
+        return medium
     if not is_microphysical(medium):
-        if is_optical(medium):
-            return medium
         raise ValueError("medium has neither lwc + reff nor an optical cloud description")
-    if phase not in ("mie", "hg"):
-        raise ValueError(f"phase must be 'mie' or 'hg', got {phase!r}")
+    phase = optics_choice(medium, optics)
     validate_medium(medium)
     veff = _single_veff(medium)
     if mie_table is None:
@@ -120,8 +167,10 @@ def to_optical(
     albedo = np.interp(r, table_reff, mie_table["albedo"].values)
 
     if phase == "hg":
-        phase_args = {"cloud_g": g}
-        description = f"Henyey-Greenstein phase function, g = {g:g}"
+        albedo = np.full(lwc.shape, DEFAULT_CLOUD_ALBEDO)
+        phase_args = {"cloud_g": DEFAULT_CLOUD_G}
+        description = (f"Henyey-Greenstein phase function, g = {DEFAULT_CLOUD_G:g}, cloud albedo "
+                       f"{DEFAULT_CLOUD_ALBEDO:g}")
     else:
         nearest = _nearest(table_reff, r)
         rows, inverse = np.unique(nearest[cloudy], return_inverse=True)
@@ -133,7 +182,7 @@ def to_optical(
             "cloud_phase": (mie_table["phase"].values[rows], mie_table["scattering_angle"].values),
             "cloud_phase_index": index,
         }
-        description = "Mie phase functions of the nearest table reff"
+        description = "Mie albedo and phase functions of the nearest table reff"
 
     optical = optical_medium(
         medium["x"].values,
@@ -162,8 +211,9 @@ def to_optical(
         **medium.attrs,
         "Conventions": "CF-1.8",
         "wavelength": table_wavelength,
-        "optics": f"Mie table ({mie_table.attrs.get('mie_code', 'unknown code')}), "
-        f"veff = {veff:g}; {description}",
+        "optics": phase,
+        "optics_description": f"extinction from the Mie table "
+        f"({mie_table.attrs.get('mie_code', 'unknown code')}), veff = {veff:g}; {description}",
     }
     validate_medium(optical)
     return optical

@@ -136,7 +136,8 @@ def test_excess_profile_starts_closer_to_a_structured_cloud():
     """On an LES-style cloud (not the single cloud the default was chosen on), the hull
     filled in the excess profile is closer to the cloud than the constant fill, both at the
     cloud's own mass: epsilon at least a third lower."""
-    cloud = to_optical(synthetic_cloud(20, 20, 12, cloud_fraction=0.35, seed=3), wavelength=0.672)
+    cloud = to_optical(synthetic_cloud(20, 20, 12, cloud_fraction=0.35, seed=3), wavelength=0.672,
+                       optics="mie")
     scene = Scene(nine_camera_set(*box_of(cloud), npix=40), Sun(0.0, 0.0))
     measured = synthesize_measurements(cloud, scene, photons=400_000, seed=2, progress=False)
     truth = cloud.cloud_extinction.values

@@ -51,7 +51,7 @@ def piece_microphysics():
 @pytest.fixture(scope="module")
 def mie_piece():
     """The piece with Mie optics (0.672 micron) of its own droplets."""
-    return to_optical(piece_microphysics(), phase="mie")
+    return to_optical(piece_microphysics(), optics="mie")
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +59,7 @@ def small_droplet_piece():
     """The piece with Mie optics of r_eff = 4 micron droplets everywhere."""
     micro = piece_microphysics()
     micro["reff"] = micro["reff"].where(micro["lwc"] <= 0.0, 4.0)
-    return to_optical(micro, phase="mie")
+    return to_optical(micro, optics="mie")
 
 
 def scene_of_piece(medium) -> Scene:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import xarray as xr
 
 import cloudct.cli
 from cloudct.cli.media import register_cli
@@ -19,7 +20,9 @@ from cloudct.les import (
     read_les,
     read_shdom_particle_file,
 )
+from cloudct.mc.render import single_cloud_medium
 from cloudct.medium import cell_edges, domain_bounds, load_medium
+from cloudct.optics import DEFAULT_OPTICS, OPTICS, to_optical
 
 REPO = Path(__file__).resolve().parents[1]
 BUNDLED = REPO / "cloudct" / "data" / "rico32x37x26.txt"
@@ -250,3 +253,52 @@ def test_les2nc_reports_malformed_file(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert "neg.txt, line 6: negative LWC" in err
     assert not (tmp_path / "m.nc").exists()
+
+
+# ---------------------------------------------------------------------------------------
+# One cloud, one medium: the optics are a recorded choice
+# ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("optics", OPTICS)
+def test_les2nc_and_the_bundled_default_give_the_same_medium(tmp_path, capsys, optics):
+    out = tmp_path / "medium.nc"
+    assert cloudct.cli.main(["les2nc", str(BUNDLED), "-o", str(out), "--optics", optics]) == 0
+    assert f"optics {optics!r}" in capsys.readouterr().out
+    written = load_medium(out)
+    assert written.attrs["optics"] == optics and "cloud_extinction" not in written
+    converted, bundled = to_optical(written), single_cloud_medium(optics)
+    xr.testing.assert_equal(converted, bundled)  # values, coordinates and variable attrs
+    assert converted.attrs["optics"] == bundled.attrs["optics"] == optics
+    assert converted.attrs["optics_description"] == bundled.attrs["optics_description"]
+
+
+def test_the_default_optics_are_the_seed_papers():
+    medium = single_cloud_medium()
+    assert DEFAULT_OPTICS == "hg" and medium.attrs["optics"] == "hg"
+    assert float(medium["cloud_g"]) == 0.85 and np.all(medium["cloud_albedo"].values == 0.99)
+
+
+def test_every_output_file_names_its_optics(tmp_path):
+    """les2nc (mie) -> render and synth of that file -> carve of those measurements: each
+    file says 'mie'; an optical medium given other optics is refused."""
+    medium = tmp_path / "medium.nc"
+    assert cloudct.cli.main(["les2nc", str(BUNDLED), "-o", str(medium), "--optics", "mie"]) == 0
+    scene = tmp_path / "scene.nc"
+    assert cloudct.cli.main(["scene", str(medium), "--npix", "8", "-o", str(scene)]) == 0
+    images = tmp_path / "images.nc"
+    assert cloudct.cli.main(["render", str(medium), "--scene", str(scene), "--photons", "2000",
+                             "--batches", "4", "-o", str(images)]) == 0
+    assert xr.load_dataset(images).attrs["optics"] == "mie"
+    synth = tmp_path / "measurements.nc"
+    assert cloudct.cli.main(["synth", str(medium), "--scene", str(scene), "--photons", "2000",
+                             "-o", str(synth)]) == 0
+    assert xr.load_dataset(synth).attrs["optics"] == "mie"
+    carved = tmp_path / "init.nc"
+    assert cloudct.cli.main(["carve", str(synth), "--medium", str(medium), "--k", "8",
+                             "--extinction", "10", "-o", str(carved)]) == 0
+    assert load_medium(carved).attrs["optics"] == "mie"
+    optical = tmp_path / "optical.nc"
+    single_cloud_medium("hg").to_netcdf(optical)
+    assert cloudct.cli.main(["render", str(optical), "--optics", "mie", "--photons", "100",
+                             "-o", str(tmp_path / "refused.nc")]) == 2

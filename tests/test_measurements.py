@@ -126,7 +126,7 @@ def test_validation_of_measurements(noisy):
 
 
 def test_wavelength_must_match_optical_medium():
-    optical = to_optical(synthetic_cloud(8, 8, 8, seed=1), wavelength=0.672)
+    optical = to_optical(synthetic_cloud(8, 8, 8, seed=1), wavelength=0.672, optics="mie")
     with pytest.raises(ValueError, match="0.672"):
         synthesize_measurements(optical, photons=100, wavelength=0.55)
 

@@ -139,7 +139,7 @@ def tiny_medium(lwc, reff, **kwargs):
 
 
 def test_to_optical_extinction(table):
-    optical = to_optical(tiny_medium(0.5, 10.0))
+    optical = to_optical(tiny_medium(0.5, 10.0), optics="mie")
     q_eff = float(table["q_ext"].sel(reff=10.0))
     # 1500 * 0.5 / 10 = 75 / km for Q = 2 (the quadrature's r_eff is 10 to ~1e-11)
     np.testing.assert_allclose(optical["cloud_extinction"].values, 75.0 * q_eff / 2.0, rtol=1e-10)
@@ -155,7 +155,7 @@ def test_to_optical_interpolation_and_nearest_phase(table):
     reff = np.zeros((2, 2, 3))
     reff[..., 0], reff[..., 1], reff[..., 2] = 10.02, 10.08, 10.05
     lwc = np.where(np.arange(3) == 2, 0.0, 1.0) * np.ones((2, 2, 3))  # top layer clear
-    optical = to_optical(tiny_medium(lwc, reff))
+    optical = to_optical(tiny_medium(lwc, reff), optics="mie")
     lo, hi = table["ext_per_lwc"].sel(reff=10.0).item(), table["ext_per_lwc"].sel(reff=10.1).item()
     ext = optical["cloud_extinction"].values
     assert ext[0, 0, 0] == pytest.approx(0.8 * lo + 0.2 * hi, rel=1e-12)
@@ -166,8 +166,17 @@ def test_to_optical_interpolation_and_nearest_phase(table):
 
 
 def test_to_optical_hg_and_errors():
-    optical = to_optical(tiny_medium(0.3, 8.0), phase="hg", g=0.8)
-    assert float(optical["cloud_g"]) == 0.8 and "cloud_phase" not in optical
+    optical = to_optical(tiny_medium(0.3, 8.0), optics="hg")
+    assert float(optical["cloud_g"]) == 0.85 and "cloud_phase" not in optical
+    assert np.all(optical["cloud_albedo"].values == 0.99)  # the seed paper's
+    assert optical.attrs["optics"] == "hg"
+    mie = to_optical(tiny_medium(0.3, 8.0), optics="mie")
+    assert mie.attrs["optics"] == "mie" and 0.999 < float(mie["cloud_albedo"].max()) <= 1.0
+    np.testing.assert_array_equal(mie["cloud_extinction"], optical["cloud_extinction"])
+    with pytest.raises(ValueError, match="optics must be one of"):
+        to_optical(tiny_medium(0.3, 8.0), optics="rayleigh")
+    with pytest.raises(ValueError, match="already optical with optics 'hg'"):
+        to_optical(optical, optics="mie")
     with pytest.raises(ValueError, match="outside the Mie table"):
         to_optical(tiny_medium(0.3, 30.0))
     to_optical(tiny_medium(0.0, 30.0))  # clear cells: reff is ignored
@@ -175,7 +184,7 @@ def test_to_optical_hg_and_errors():
 
 def test_kernel_arrays_mie():
     profile = np.array([0.05, 0.04, 0.03])
-    optical = to_optical(tiny_medium(0.5, 10.0, air_extinction=profile))
+    optical = to_optical(tiny_medium(0.5, 10.0, air_extinction=profile), optics="mie")
     grid, bank = kernel_arrays(optical)
     for name in ("x_edges", "y_edges", "z_edges", "extinction", "albedo"):
         array = getattr(grid, name)
@@ -193,7 +202,7 @@ def test_kernel_arrays_mie():
 
 
 def test_kernel_arrays_hg_distinct_g():
-    optical = to_optical(tiny_medium(0.5, 10.0), phase="hg")
+    optical = to_optical(tiny_medium(0.5, 10.0), optics="hg")
     g = np.full((2, 2, 3), 0.85)
     g[0, 0, 0] = 0.7
     optical["cloud_g"] = xr.DataArray(g, dims=("x", "y", "z"), attrs={"units": "1"})

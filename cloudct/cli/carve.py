@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from cloudct.mc.render import single_cloud_medium
+from cloudct.cli.options import add_optics_option, measured_optics, medium_from_options
 from cloudct.measurements import load_measurements
-from cloudct.medium import load_medium, save_medium
+from cloudct.medium import save_medium
 from cloudct.retrieval.carving import (
     FIT_PHOTONS,
     PROFILES,
@@ -20,7 +20,7 @@ from cloudct.retrieval.carving import (
 def _cli_carve(args: argparse.Namespace) -> int:
     """``cloudct carve``: hull and initial medium from measurements."""
     measurements = load_measurements(args.measurements)
-    template = single_cloud_medium() if args.medium is None else load_medium(args.medium)
+    template = medium_from_options(args.medium, measured_optics(measurements, args.optics))
     output = Path(args.output)
     if output.exists() and not args.overwrite:
         raise FileExistsError(f"{output} exists (use --overwrite)")
@@ -69,5 +69,6 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--fit-photons", type=int, default=FIT_PHOTONS,
                    help="photons per trial render of the extinction fit")
     p.add_argument("--figure", help="PNG of the views with the cloudy pixels and the hull")
+    add_optics_option(p, "Default: the measurements' recorded optics, else 'hg'")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cli_carve)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cloudct.cli.options import add_distributed_options
+from cloudct.cli.options import add_distributed_options, add_optics_option, medium_from_options
 from cloudct.distributed import close_client, connect, executor
 from cloudct.mc.render import METHODS, render, save_images, save_previews, single_cloud_medium
 from cloudct.mc.scene import BOUNDARIES, PRESETS, build_scene, load_scene, single_cloud_scene
@@ -17,10 +17,7 @@ from cloudct.medium import cell_edges, load_medium
 
 def _cli_render(args: argparse.Namespace) -> int:
     """``cloudct render``: images of a medium for a scene, to netCDF and PNG previews."""
-    if args.medium is None:
-        medium = single_cloud_medium()
-    else:
-        medium = load_medium(args.medium)
+    medium = medium_from_options(args.medium, args.optics)
     if args.scene is None:
         edges = cell_edges(medium)
         scene = single_cloud_scene(
@@ -108,6 +105,7 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
                    "(unbiased; tames Mie fireflies). 0 switches it off; default 0.1 with Mie "
                    "(tabulated) phase functions, else 0")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    add_optics_option(p)
     add_distributed_options(p)
     p.set_defaults(func=_cli_render)
 

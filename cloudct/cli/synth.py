@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from cloudct.mc.render import single_cloud_medium
+from cloudct.cli.options import add_optics_option, medium_from_options
 from cloudct.mc.scene import load_scene
 from cloudct.measurements import (
     DEFAULT_PHOTONS,
@@ -13,7 +13,6 @@ from cloudct.measurements import (
     save_measurements,
     synthesize_measurements,
 )
-from cloudct.medium import load_medium
 from cloudct.physics.mie import DEFAULT_WAVELENGTH
 
 
@@ -21,7 +20,7 @@ def _cli_synth(args: argparse.Namespace) -> int:
     """``cloudct synth``: synthetic measurements of a medium, to netCDF."""
     if args.read_noise is not None and args.noise_electrons is None:
         raise ValueError("--read-noise needs --noise-electrons (the signal level)")
-    medium = single_cloud_medium() if args.medium is None else load_medium(args.medium)
+    medium = medium_from_options(args.medium, args.optics)
     scene = None if args.scene is None else load_scene(args.scene)
     noise = None
     if args.noise_electrons is not None:
@@ -31,7 +30,7 @@ def _cli_synth(args: argparse.Namespace) -> int:
         raise FileExistsError(f"{output} exists (use --overwrite)")
     ds = synthesize_measurements(
         medium, scene, photons=args.photons, seed=args.seed, noise=noise,
-        wavelength=args.wavelength, progress=None,
+        wavelength=args.wavelength, optics=args.optics, progress=None,
     )
     save_measurements(ds, output, overwrite=args.overwrite)
     noise_text = "no camera noise" if noise is None else (
@@ -67,5 +66,6 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--read-noise", type=float, metavar="R", help="read noise [electrons rms]")
     p.add_argument("--wavelength", type=float, default=DEFAULT_WAVELENGTH,
                    help="wavelength [micron] (default %(default)s)")
+    add_optics_option(p)
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cli_synth)

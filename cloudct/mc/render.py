@@ -36,7 +36,7 @@ from cloudct.mc.scene import (
 )
 from cloudct.mc.sun import SunArrays, sun_arrays
 from cloudct.medium import cell_edges, is_optical, validate_medium
-from cloudct.optics import kernel_arrays, to_optical
+from cloudct.optics import DEFAULT_OPTICS, kernel_arrays, optics_name, to_optical
 from cloudct.physics.mixing import OpticalGrid
 from cloudct.physics.phase import TABULATED, PhaseBank
 
@@ -104,7 +104,7 @@ def render(
     )
     radiance = batch_means.mean(axis=0)
     std_error = batch_means.std(axis=0, ddof=1) / math.sqrt(batches)
-    return images_dataset(radiance, std_error, scene, **info)
+    return images_dataset(radiance, std_error, scene, optics=optics_name(medium), **info)
 
 
 def render_batches(
@@ -312,13 +312,12 @@ def save_previews(images: xr.Dataset, directory: str | Path) -> list[Path]:
     return written
 
 
-def single_cloud_medium() -> xr.Dataset:
-    """The seed paper's single cloud (bundled rico32x37x26) with its optics: Mie extinction
-    at 0.672 micron, cloud albedo 0.99 and HG g = 0.85, air 0.04 /km with albedo 0.912."""
+def single_cloud_medium(optics: str = DEFAULT_OPTICS) -> xr.Dataset:
+    """The seed paper's single cloud (bundled rico32x37x26) with the named cloud ``optics``
+    (:func:`cloudct.optics.to_optical`; the default, ``"hg"``, is the paper's: Mie
+    extinction at 0.672 micron, HG g = 0.85, cloud albedo 0.99), air 0.04 /km with albedo
+    0.912. ``cloudct les2nc`` of the bundled file gives the same medium for the same
+    optics."""
     from cloudct.les import bundled_single_cloud
 
-    optical = to_optical(bundled_single_cloud(), phase="hg", g=0.85)
-    optical["cloud_albedo"] = xr.full_like(optical["cloud_extinction"], 0.99).assign_attrs(
-        units="1", long_name="cloud single-scattering albedo"
-    )
-    return optical
+    return to_optical(bundled_single_cloud(), optics=optics)

@@ -46,13 +46,11 @@ from cloudct.mc.render import render
 from cloudct.mc.scene import Scene, check_scene
 from cloudct.measurements import validate_measurements
 from cloudct.medium import (
-    DEFAULT_CLOUD_ALBEDO,
-    DEFAULT_CLOUD_G,
     cell_edges,
-    is_optical,
     optical_medium,
     validate_medium,
 )
+from cloudct.optics import optics_name, to_optical
 
 #: Default cloudy-pixel rule (see :func:`cloud_masks`).
 SIGNAL_FRACTION = 0.02
@@ -595,10 +593,10 @@ def initial_medium(
     Args:
         carved: the result of :func:`carve`, or a hull mask (x, y, z) on the template's
             grid (filled with a constant extinction).
-        template_medium: gives the grid and the air (kept as they are) and, when it is
-            optical, the cloud albedo and phase function (HG g, or the tabulated phase
-            functions with their per-cell index); a microphysical-only template gives the
-            seed paper's cloud (albedo 0.99, HG g = 0.85).
+        template_medium: gives the grid and the air (kept as they are) and the cloud
+            albedo and phase function (HG g, or the tabulated phase functions with their
+            per-cell index); a microphysical template is given its optics first
+            (:func:`cloudct.optics.to_optical`: its recorded choice, else the default).
         extinction: the mean cloud extinction in the hull [km-1]; default the
             ``extinction_estimate`` that :func:`carve` stored (:func:`fit_extinction`).
 
@@ -609,6 +607,7 @@ def initial_medium(
         ValueError: grids that differ, an empty hull, or a missing or negative extinction.
     """
     validate_medium(template_medium)
+    template_medium = to_optical(template_medium)
     mask = carved["hull"] if isinstance(carved, xr.Dataset) else carved
     if extinction is None:
         if "extinction_estimate" not in carved.attrs:
@@ -631,16 +630,14 @@ def initial_medium(
         shape = carved["extinction_profile"].transpose("x", "y", "z").values
         profile = carved.attrs.get("profile", "given")
 
-    cloud: dict = {"cloud_albedo": DEFAULT_CLOUD_ALBEDO, "cloud_g": DEFAULT_CLOUD_G}
-    if is_optical(template_medium):
-        cloud = {"cloud_albedo": template_medium["cloud_albedo"]}
-        if "cloud_g" in template_medium:
-            cloud["cloud_g"] = template_medium["cloud_g"]
-        else:
-            table = template_medium["cloud_phase"]
-            cloud["cloud_phase"] = (table.values, table["scattering_angle"].values)
-            cloud["cloud_phase_index"] = template_medium["cloud_phase_index"]
-    return optical_medium(
+    cloud = {"cloud_albedo": template_medium["cloud_albedo"]}
+    if "cloud_g" in template_medium:
+        cloud["cloud_g"] = template_medium["cloud_g"]
+    else:
+        table = template_medium["cloud_phase"]
+        cloud["cloud_phase"] = (table.values, table["scattering_angle"].values)
+        cloud["cloud_phase_index"] = template_medium["cloud_phase_index"]
+    medium = optical_medium(
         template_medium["x"].values,
         template_medium["y"].values,
         template_medium["z"].values,
@@ -654,6 +651,7 @@ def initial_medium(
         f"extinction {extinction:.6g} km-1",
         **cloud,
     )
+    return medium.assign_attrs(optics=optics_name(template_medium))
 
 
 # ---------------------------------------------------------------------------------------
