@@ -14,13 +14,8 @@ from cloudct.mc.sun import Sun
 from cloudct.measurements import save_measurements, synthesize_measurements
 from cloudct.medium import cell_edges, load_medium, save_medium, validate_medium
 from cloudct.optics import to_optical
-from cloudct.retrieval.carving import (
-    carve,
-    clear_sky_background,
-    default_k,
-    initial_medium,
-    project_points,
-)
+from cloudct.retrieval.carving import carve, default_k, initial_medium
+from cloudct.retrieval.cloudy_pixels import clear_sky_background, project_points
 from cloudct.retrieval.metrics import epsilon_delta
 from data_synth.synthetic_cloud import blob_cloud, synthetic_cloud
 

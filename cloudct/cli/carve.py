@@ -13,8 +13,8 @@ from cloudct.retrieval.carving import (
     PROFILES,
     carve,
     initial_medium,
-    save_hull_figure,
 )
+from cloudct.retrieval.carving_figure import save_hull_figure
 
 
 def _cli_carve(args: argparse.Namespace) -> int:

@@ -3,17 +3,20 @@
 Seed paper Sec. 6.1.1: the retrieval starts from the space-carved hull of the cloud
 [Kutulakos and Seitz 2000] filled with the cloud's mean extinction. Here:
 
-1. **Clear-sky background** (:func:`clear_sky_background`). What a pixel would see without
-   the cloud: sunlight singly scattered by the template's air along the pixel's rays
-   through the medium, plus the sunlit Lambertian ground where the scene has one.
-2. **Cloudy pixels** (:func:`cloud_masks`). A pixel is cloudy when its radiance exceeds its
-   clear-sky background by more than the larger of a fraction of the view's cloud signal
-   and a multiple of the pixel's noise standard deviation (or a given threshold).
+1. **Clear-sky background** (:func:`~cloudct.retrieval.cloudy_pixels.clear_sky_background`).
+   What a pixel would see without the cloud: sunlight singly scattered by the template's
+   air along the pixel's rays through the medium, plus the sunlit Lambertian ground where
+   the scene has one.
+2. **Cloudy pixels** (:func:`~cloudct.retrieval.cloudy_pixels.cloud_masks`). A pixel is
+   cloudy when its radiance exceeds its clear-sky background by more than the larger of a
+   fraction of the view's cloud signal and a multiple of the pixel's noise standard
+   deviation (or a given threshold).
 3. **Votes.** A voxel is projected onto each view with the cameras' pinhole model
-   (:func:`project_points`, the vectorised twin of :func:`cloudct.mc.cameras.project`) at
-   the centres of its ``subsamples``^3 sub-cells. View v votes for the voxel when one of
-   those points falls on a cloudy pixel, or when one falls outside the image or on a masked
-   (NaN) pixel: a view cannot carve away what it does not see.
+   (:func:`~cloudct.retrieval.cloudy_pixels.project_points`, the vectorised twin of
+   :func:`cloudct.mc.cameras.project`) at the centres of its ``subsamples``^3 sub-cells.
+   View v votes for the voxel when one of those points falls on a cloudy pixel, or when
+   one falls outside the image or on a masked (NaN) pixel: a view cannot carve away what
+   it does not see.
 4. **Hull.** The voxels with at least k votes form the hull. The default k is every view
    but one (n - 1; n when there are fewer than three views): one view may miss a part of
    the cloud, typically a shadowed cloud base seen from the side, which is no brighter
@@ -36,7 +39,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from pathlib import Path
 
 import numpy as np
 import xarray as xr
@@ -51,248 +53,24 @@ from cloudct.medium import (
     validate_medium,
 )
 from cloudct.optics import optics_name, to_optical
+from cloudct.retrieval.cloudy_pixels import (
+    box_corners,
+    cell_index,
+    cloud_masks,
+    pixel_rays,
+    project_points,
+    ray_box,
+    ray_steps,
+)
 
-#: Default cloudy-pixel rule (see :func:`cloud_masks`).
-SIGNAL_FRACTION = 0.02
-SIGNAL_PERCENTILE = 99.0
-NOISE_MULTIPLE = 3.0
 #: Default number of sub-cells per axis at whose centres a voxel is projected.
 SUBSAMPLES = 3
 #: Shapes of the initial extinction in the hull (see :func:`carve`).
 PROFILES = ("excess", "constant")
-#: Sub-pixel rays per axis of the clear-sky background.
-BACKGROUND_SUBPIXELS = 4
 #: Absolute tolerance on the measured box, as a fraction of the box's largest extent.
 BOX_RTOL = 1e-6
 #: Photons of each trial render of :func:`fit_extinction`.
 FIT_PHOTONS = 100_000
-
-
-# ---------------------------------------------------------------------------------------
-# Geometry: projection and rays
-# ---------------------------------------------------------------------------------------
-
-
-def project_points(
-    cams: CameraArrays, view: int, points: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels (row, col) of camera ``view`` seeing ``points`` (..., 3) [km]; -1 where a
-    point is behind the camera or outside the image. The vectorised twin of
-    :func:`cloudct.mc.cameras.project` (the same pinhole model and pixel edges)."""
-    d = points - cams.position[view]
-    depth = d @ cams.forward[view]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = (d @ cams.right[view]) / depth
-        v = (d @ cams.up[view]) / depth
-    hw, hh = cams.half_width[view], cams.half_height[view]
-    inside = (depth > 0.0) & (-hw <= u) & (u < hw) & (-hh < v) & (v <= hh)
-    col = np.minimum(np.floor((u + hw) / (2.0 * hw) * cams.ncols), cams.ncols - 1)
-    row = np.minimum(np.floor((hh - v) / (2.0 * hh) * cams.nrows), cams.nrows - 1)
-    return np.where(inside, row, -1).astype(np.int64), np.where(inside, col, -1).astype(np.int64)
-
-
-def pixel_rays(cams: CameraArrays, view: int, subpixels: int = 1) -> np.ndarray:
-    """Unit directions from the pinhole of ``view`` through the centres of the
-    ``subpixels`` x ``subpixels`` sub-pixels of every pixel, (nrows, ncols, subpixels^2, 3)
-    (the same image plane as :func:`cloudct.mc.cameras.pixel_ray`)."""
-    hw, hh = cams.half_width[view], cams.half_height[view]
-    offsets = (np.arange(subpixels) + 0.5) / subpixels
-    u = -hw + (np.arange(cams.ncols)[:, None] + offsets).ravel() * (2.0 * hw / cams.ncols)
-    v = hh - (np.arange(cams.nrows)[:, None] + offsets).ravel() * (2.0 * hh / cams.nrows)
-    rays = (
-        cams.forward[view]
-        + u[None, :, None] * cams.right[view]
-        + v[:, None, None] * cams.up[view]
-    )
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-    # (nrows * s, ncols * s, 3) -> (nrows, ncols, s * s, 3)
-    s = subpixels
-    rays = rays.reshape(cams.nrows, s, cams.ncols, s, 3).transpose(0, 2, 1, 3, 4)
-    return rays.reshape(cams.nrows, cams.ncols, s * s, 3)
-
-
-def ray_box(
-    origin: np.ndarray, rays: np.ndarray, lo: np.ndarray, hi: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Distances (t_in, t_out) along ``rays`` (..., 3) from ``origin`` through the box
-    [lo, hi] (slab method; infinite bounds allowed). t_in >= t_out where a ray misses."""
-    # a ray parallel to a pair of faces gets +-inf there (inside the slab for every t, or
-    # never), or NaN (0/0) when it runs in a face plane: counted as inside
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t0 = (lo - origin) / rays
-        t1 = (hi - origin) / rays
-    near = np.where(np.isnan(t0), -np.inf, np.minimum(t0, t1))
-    far = np.where(np.isnan(t1), np.inf, np.maximum(t0, t1))
-    return np.maximum(near.max(axis=-1), 0.0), far.min(axis=-1)
-
-
-def _march(
-    t_in: np.ndarray, t_out: np.ndarray, step: float
-) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Steps along rays from t_in to t_out: yields (live, midpoint t, segment length), the
-    last segment of each ray cut at t_out."""
-    start = t_in.copy()
-    while np.any(live := start < t_out):
-        end = np.minimum(start[live] + step, t_out[live])
-        yield live, 0.5 * (start[live] + end), end - start[live]
-        start[live] = end
-
-
-def _cell_index(edges: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Index of the cell of ``edges`` holding each value (clamped to the grid)."""
-    return np.clip(np.searchsorted(edges, values, side="right") - 1, 0, len(edges) - 2)
-
-
-def _box(edges: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray]:
-    return np.array([e[0] for e in edges]), np.array([e[-1] for e in edges])
-
-
-# ---------------------------------------------------------------------------------------
-# Clear-sky background and cloudy pixels
-# ---------------------------------------------------------------------------------------
-
-
-def clear_sky_background(
-    scene: Scene, template: xr.Dataset, subpixels: int = BACKGROUND_SUBPIXELS
-) -> np.ndarray:
-    """Radiance each pixel would see without the cloud, float64[view, row, col].
-
-    Single scattering of sunlight by the template's air, averaged over
-    ``subpixels`` x ``subpixels`` rays per pixel:
-
-        L_air = w_air p_R(Theta) integral beta_air(z) T_sun(z) T_view(t) dt
-
-    along the ray inside the medium (the box; with periodic boundaries the whole slab),
-    with p_R the Rayleigh phase function at the scattering angle Theta between the sun's
-    rays and the direction to the camera, beta_air the air extinction averaged over x and y,
-    T_view the transmittance back to the camera and T_sun = exp(-tau_above(z) / mu0) that
-    from the top of the medium. A Lambertian ground of albedo A seen by the ray adds
-    A mu0 / pi T_sun(ground) T_view(ground). Air multiple scattering and sunlight entering
-    through the side faces (open boundaries, oblique sun) are neglected: errors of the order
-    of the air's optical depth (a few per cent) in a background that is itself small.
-    """
-    validate_medium(template)
-    edges = cell_edges(template)
-    check_scene(scene, edges)
-    z_edges = edges[2]
-    air = template["air_extinction"]
-    beta = np.broadcast_to(
-        air.mean(dim=[d for d in air.dims if d != "z"]).values, (len(z_edges) - 1,)
-    )
-    tau_below = np.concatenate(([0.0], np.cumsum(beta * np.diff(z_edges))))
-    albedo = float(template["air_albedo"])
-    sun = scene.sun.travel_direction()
-    mu0 = -sun[2]
-
-    def sun_transmittance(z: np.ndarray) -> np.ndarray:
-        tau_above = tau_below[-1] - np.interp(z, z_edges, tau_below)
-        return np.exp(-tau_above / mu0)
-
-    lo, hi = _box(edges)
-    if scene.periodic:
-        lo[:2], hi[:2] = -np.inf, np.inf
-    step = 0.5 * float(np.diff(z_edges).min())
-    cams = camera_arrays(scene.cameras)
-    out = np.zeros((len(scene.cameras), cams.nrows, cams.ncols))
-    for v in range(out.shape[0]):
-        origin = cams.position[v]
-        rays = pixel_rays(cams, v, subpixels)
-        t_in, t_out = ray_box(origin, rays, lo, hi)
-        mu = -(rays @ sun)  # cos(scattering angle): sun's rays vs. direction to the camera
-        phase = 3.0 / (16.0 * np.pi) * (1.0 + mu * mu)
-        radiance = np.zeros(t_in.shape)
-        tau_view = np.zeros(t_in.shape)
-        for live, t, length in _march(t_in, t_out, step):
-            z = origin[2] + t * rays[live][:, 2]
-            b = beta[_cell_index(z_edges, z)]
-            radiance[live] += (
-                b * length * np.exp(-(tau_view[live] + 0.5 * b * length)) * sun_transmittance(z)
-            )
-            tau_view[live] += b * length
-        radiance *= albedo * phase
-        if scene.ground_albedo is not None:
-            ground = (t_in < t_out) & (
-                np.abs(origin[2] + t_out * rays[..., 2] - z_edges[0]) <= 1e-9 + 1e-9 * t_out
-            )
-            radiance += np.where(
-                ground,
-                scene.ground_albedo * mu0 / np.pi * sun_transmittance(z_edges[0])
-                * np.exp(-tau_view),
-                0.0,
-            )
-        out[v] = radiance.mean(axis=-1)
-    return out
-
-
-def cloud_masks(
-    measurements: xr.Dataset, template: xr.Dataset, threshold: float | None = None
-) -> xr.Dataset:
-    """Cloudy pixels of every view.
-
-    The excess e = L - L_clear of each pixel over its clear-sky background
-    (:func:`clear_sky_background`) is cloudy when
-
-        e > max(SIGNAL_FRACTION * e_peak,v, NOISE_MULTIPLE * sigma),
-
-    with e_peak,v the ``SIGNAL_PERCENTILE`` (99th) percentile of the excess over the view's
-    pixels that look into the medium (its cloud signal), sigma the pixel's
-    ``radiance_noise_std`` (else ``radiance_std_error``, else 0), SIGNAL_FRACTION = 0.02
-    and NOISE_MULTIPLE = 3. The noise term keeps noise out; the fraction term is a floor for
-    measurements with small or no noise estimates (it covers the error of the clear-sky
-    model, 1-2.5 % of the air's radiance, and air lit by the cloud). A given ``threshold``
-    [radiance units] replaces the rule in every view. NaN pixels are never cloudy.
-
-    Returns:
-        A Dataset with ``cloud_mask`` (view, row, col) int8 (1 cloudy),
-        ``clear_sky_radiance`` (view, row, col) and ``signal_threshold`` (view), the
-        fraction term of the rule (or the given threshold).
-    """
-    radiance = measurements["radiance"].values
-    sigma = np.zeros_like(radiance)
-    for name in ("radiance_noise_std", "radiance_std_error"):
-        if name in measurements:
-            sigma = measurements[name].values
-            break
-    scene = Scene.from_dataset(measurements)
-    background = clear_sky_background(scene, template)
-    excess = radiance - background
-    lo, hi = _box(cell_edges(template))
-    if scene.periodic:
-        lo[:2], hi[:2] = -np.inf, np.inf
-    cams = camera_arrays(scene.cameras)
-    signal = np.zeros(radiance.shape[0])
-    mask = np.zeros(radiance.shape, dtype=bool)
-    for v in range(radiance.shape[0]):
-        if threshold is None:
-            t_in, t_out = ray_box(cams.position[v], pixel_rays(cams, v)[:, :, 0], lo, hi)
-            seen = excess[v][(t_in < t_out) & np.isfinite(excess[v])]
-            if seen.size:
-                signal[v] = SIGNAL_FRACTION * max(np.percentile(seen, SIGNAL_PERCENTILE), 0.0)
-            pixel_threshold = np.maximum(signal[v], NOISE_MULTIPLE * sigma[v])
-        else:
-            signal[v] = pixel_threshold = float(threshold)
-        with np.errstate(invalid="ignore"):
-            mask[v] = excess[v] > pixel_threshold
-    dims = ("view", "row", "col")
-    rule = (
-        f"radiance above the clear-sky background by more than max({SIGNAL_FRACTION:g} x "
-        f"the view's p{SIGNAL_PERCENTILE:g} excess, {NOISE_MULTIPLE:g} x the pixel's noise "
-        "std)" if threshold is None else f"radiance above the clear-sky background by more "
-        f"than {threshold:g}"
-    )
-    return xr.Dataset(
-        {
-            "cloud_mask": (dims, mask.astype(np.int8), {
-                "units": "1", "long_name": "pixel judged cloudy (1) or clear (0)",
-                "comment": rule}),
-            "clear_sky_radiance": (dims, background, {
-                "units": "1", "long_name": "clear-sky background radiance (air, ground)"}),
-            "signal_threshold": ("view", signal, {
-                "units": "1", "long_name": "cloudy-pixel threshold above the background "
-                "(before the noise term)"}),
-        },
-        coords={"view": measurements["view"].values},
-    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -504,7 +282,7 @@ def _silhouette(
 ) -> np.ndarray:
     """int8[view, row, col]: 1 where the pixel's centre ray crosses a hull voxel (marched
     at steps of a quarter of the smallest cell size)."""
-    lo, hi = _box(edges)
+    lo, hi = box_corners(edges)
     step = 0.25 * min(float(np.diff(e).min()) for e in edges)
     out = np.zeros((cams.position.shape[0], cams.nrows, cams.ncols), dtype=np.int8)
     for v in range(out.shape[0]):
@@ -512,9 +290,9 @@ def _silhouette(
         rays = pixel_rays(cams, v)[:, :, 0]
         t_in, t_out = ray_box(origin, rays, lo, hi)
         hit = np.zeros(t_in.shape, dtype=bool)
-        for live, t, _ in _march(t_in, t_out, step):
+        for live, t, _ in ray_steps(t_in, t_out, step):
             point = origin + t[:, None] * rays[live]
-            index = tuple(_cell_index(e, point[:, a]) for a, e in enumerate(edges))
+            index = tuple(cell_index(e, point[:, a]) for a, e in enumerate(edges))
             hit[live] |= hull[index]
         out[v] = hit
     return out
@@ -652,66 +430,3 @@ def initial_medium(
         **cloud,
     )
     return medium.assign_attrs(optics=optics_name(template_medium))
-
-
-# ---------------------------------------------------------------------------------------
-# Figure and command line
-# ---------------------------------------------------------------------------------------
-
-
-def save_hull_figure(carved: xr.Dataset, measurements: xr.Dataset, path: str | Path) -> Path:
-    """Every view's measured image with the outlines of its cloudy pixels (cyan) and of the
-    hull's silhouette (red), and below them the hull's extinction profile summed along z, y
-    and x (top and side views, km). Returns the path written."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    radiance = measurements["radiance"].values
-    nview = radiance.shape[0]
-    ncol = max(math.ceil(math.sqrt(nview)), 3)
-    nrow = math.ceil(nview / ncol) + 1  # the last row: the profile
-    vmax = float(np.nanmax(radiance)) or 1.0
-    fig, axes = plt.subplots(nrow, ncol, figsize=(2.6 * ncol, 2.6 * nrow + 0.4), squeeze=False)
-    for ax in axes.flat:
-        ax.axis("off")
-    _profile_projections(carved, axes[-1])
-    for v, ax in enumerate(axes[:-1].flat):
-        if v >= nview:
-            continue
-        ax.imshow(radiance[v], cmap="gray", vmin=0.0, vmax=vmax)
-        for name, colour in (("cloud_mask", "cyan"), ("hull_silhouette", "red")):
-            field = carved[name].values[v]
-            if field.any() and not field.all():
-                ax.contour(field, levels=[0.5], colors=colour, linewidths=0.8)
-        ax.set_title(f"view {v}", fontsize=8)
-    fig.suptitle(
-        f"space carving: cloudy pixels (cyan), hull silhouette (red); k = {carved.attrs['k']} "
-        f"of {nview} views, {int(carved['hull'].sum())} voxels; "
-        f"{carved.attrs['profile']} profile (bottom row)",
-        fontsize=9,
-    )
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
-
-
-def _profile_projections(carved: xr.Dataset, axes) -> None:
-    """The extinction profile summed along z, y and x on the first three of ``axes``."""
-    profile = carved["extinction_profile"].transpose("x", "y", "z")
-    edges = {
-        name: (float(profile[name][0]), float(profile[name][-1])) for name in ("x", "y", "z")
-    }
-    for ax, (along, across, up) in zip(axes, (("z", "x", "y"), ("y", "x", "z"),
-                                               ("x", "y", "z")), strict=False):
-        image = profile.sum(along).transpose(up, across).values
-        ax.axis("on")
-        ax.imshow(image, origin="lower", cmap="magma", aspect="auto",
-                  extent=(*edges[across], *edges[up]))
-        ax.set_xlabel(f"{across} [km]", fontsize=7)
-        ax.set_ylabel(f"{up} [km]", fontsize=7)
-        ax.tick_params(labelsize=6)
-        ax.set_title(f"profile summed along {along}", fontsize=8)

@@ -1,0 +1,252 @@
+"""Which pixels see cloud: each pixel's clear-sky background and the cloudy-pixel rule of
+space carving (:mod:`cloudct.retrieval.carving`, steps 1 and 2), with the pinhole
+projection and the pixel rays they share with the carving's votes."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+import xarray as xr
+
+from cloudct.mc.cameras import CameraArrays, camera_arrays
+from cloudct.mc.scene import Scene, check_scene
+from cloudct.medium import (
+    cell_edges,
+    validate_medium,
+)
+
+#: Default cloudy-pixel rule (see :func:`cloud_masks`).
+SIGNAL_FRACTION = 0.02
+SIGNAL_PERCENTILE = 99.0
+NOISE_MULTIPLE = 3.0
+#: Sub-pixel rays per axis of the clear-sky background.
+BACKGROUND_SUBPIXELS = 4
+
+
+# ---------------------------------------------------------------------------------------
+# Geometry: projection and rays
+# ---------------------------------------------------------------------------------------
+
+
+def project_points(
+    cams: CameraArrays, view: int, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (row, col) of camera ``view`` seeing ``points`` (..., 3) [km]; -1 where a
+    point is behind the camera or outside the image. The vectorised twin of
+    :func:`cloudct.mc.cameras.project` (the same pinhole model and pixel edges)."""
+    d = points - cams.position[view]
+    depth = d @ cams.forward[view]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = (d @ cams.right[view]) / depth
+        v = (d @ cams.up[view]) / depth
+    hw, hh = cams.half_width[view], cams.half_height[view]
+    inside = (depth > 0.0) & (-hw <= u) & (u < hw) & (-hh < v) & (v <= hh)
+    col = np.minimum(np.floor((u + hw) / (2.0 * hw) * cams.ncols), cams.ncols - 1)
+    row = np.minimum(np.floor((hh - v) / (2.0 * hh) * cams.nrows), cams.nrows - 1)
+    return np.where(inside, row, -1).astype(np.int64), np.where(inside, col, -1).astype(np.int64)
+
+
+def pixel_rays(cams: CameraArrays, view: int, subpixels: int = 1) -> np.ndarray:
+    """Unit directions from the pinhole of ``view`` through the centres of the
+    ``subpixels`` x ``subpixels`` sub-pixels of every pixel, (nrows, ncols, subpixels^2, 3)
+    (the same image plane as :func:`cloudct.mc.cameras.pixel_ray`)."""
+    hw, hh = cams.half_width[view], cams.half_height[view]
+    offsets = (np.arange(subpixels) + 0.5) / subpixels
+    u = -hw + (np.arange(cams.ncols)[:, None] + offsets).ravel() * (2.0 * hw / cams.ncols)
+    v = hh - (np.arange(cams.nrows)[:, None] + offsets).ravel() * (2.0 * hh / cams.nrows)
+    rays = (
+        cams.forward[view]
+        + u[None, :, None] * cams.right[view]
+        + v[:, None, None] * cams.up[view]
+    )
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    # (nrows * s, ncols * s, 3) -> (nrows, ncols, s * s, 3)
+    s = subpixels
+    rays = rays.reshape(cams.nrows, s, cams.ncols, s, 3).transpose(0, 2, 1, 3, 4)
+    return rays.reshape(cams.nrows, cams.ncols, s * s, 3)
+
+
+def ray_box(
+    origin: np.ndarray, rays: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Distances (t_in, t_out) along ``rays`` (..., 3) from ``origin`` through the box
+    [lo, hi] (slab method; infinite bounds allowed). t_in >= t_out where a ray misses."""
+    # a ray parallel to a pair of faces gets +-inf there (inside the slab for every t, or
+    # never), or NaN (0/0) when it runs in a face plane: counted as inside
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = (lo - origin) / rays
+        t1 = (hi - origin) / rays
+    near = np.where(np.isnan(t0), -np.inf, np.minimum(t0, t1))
+    far = np.where(np.isnan(t1), np.inf, np.maximum(t0, t1))
+    return np.maximum(near.max(axis=-1), 0.0), far.min(axis=-1)
+
+
+def ray_steps(
+    t_in: np.ndarray, t_out: np.ndarray, step: float
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Steps along rays from t_in to t_out: yields (live, midpoint t, segment length), the
+    last segment of each ray cut at t_out."""
+    start = t_in.copy()
+    while np.any(live := start < t_out):
+        end = np.minimum(start[live] + step, t_out[live])
+        yield live, 0.5 * (start[live] + end), end - start[live]
+        start[live] = end
+
+
+def cell_index(edges: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Index of the cell of ``edges`` holding each value (clamped to the grid)."""
+    return np.clip(np.searchsorted(edges, values, side="right") - 1, 0, len(edges) - 2)
+
+
+def box_corners(edges: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest and the highest corner of the box of the cell ``edges`` [km]."""
+    return np.array([e[0] for e in edges]), np.array([e[-1] for e in edges])
+
+
+# ---------------------------------------------------------------------------------------
+# Clear-sky background and cloudy pixels
+# ---------------------------------------------------------------------------------------
+
+
+def clear_sky_background(
+    scene: Scene, template: xr.Dataset, subpixels: int = BACKGROUND_SUBPIXELS
+) -> np.ndarray:
+    """Radiance each pixel would see without the cloud, float64[view, row, col].
+
+    Single scattering of sunlight by the template's air, averaged over
+    ``subpixels`` x ``subpixels`` rays per pixel:
+
+        L_air = w_air p_R(Theta) integral beta_air(z) T_sun(z) T_view(t) dt
+
+    along the ray inside the medium (the box; with periodic boundaries the whole slab),
+    with p_R the Rayleigh phase function at the scattering angle Theta between the sun's
+    rays and the direction to the camera, beta_air the air extinction averaged over x and y,
+    T_view the transmittance back to the camera and T_sun = exp(-tau_above(z) / mu0) that
+    from the top of the medium. A Lambertian ground of albedo A seen by the ray adds
+    A mu0 / pi T_sun(ground) T_view(ground). Air multiple scattering and sunlight entering
+    through the side faces (open boundaries, oblique sun) are neglected: errors of the order
+    of the air's optical depth (a few per cent) in a background that is itself small.
+    """
+    validate_medium(template)
+    edges = cell_edges(template)
+    check_scene(scene, edges)
+    z_edges = edges[2]
+    air = template["air_extinction"]
+    beta = np.broadcast_to(
+        air.mean(dim=[d for d in air.dims if d != "z"]).values, (len(z_edges) - 1,)
+    )
+    tau_below = np.concatenate(([0.0], np.cumsum(beta * np.diff(z_edges))))
+    albedo = float(template["air_albedo"])
+    sun = scene.sun.travel_direction()
+    mu0 = -sun[2]
+
+    def sun_transmittance(z: np.ndarray) -> np.ndarray:
+        tau_above = tau_below[-1] - np.interp(z, z_edges, tau_below)
+        return np.exp(-tau_above / mu0)
+
+    lo, hi = box_corners(edges)
+    if scene.periodic:
+        lo[:2], hi[:2] = -np.inf, np.inf
+    step = 0.5 * float(np.diff(z_edges).min())
+    cams = camera_arrays(scene.cameras)
+    out = np.zeros((len(scene.cameras), cams.nrows, cams.ncols))
+    for v in range(out.shape[0]):
+        origin = cams.position[v]
+        rays = pixel_rays(cams, v, subpixels)
+        t_in, t_out = ray_box(origin, rays, lo, hi)
+        mu = -(rays @ sun)  # cos(scattering angle): sun's rays vs. direction to the camera
+        phase = 3.0 / (16.0 * np.pi) * (1.0 + mu * mu)
+        radiance = np.zeros(t_in.shape)
+        tau_view = np.zeros(t_in.shape)
+        for live, t, length in ray_steps(t_in, t_out, step):
+            z = origin[2] + t * rays[live][:, 2]
+            b = beta[cell_index(z_edges, z)]
+            radiance[live] += (
+                b * length * np.exp(-(tau_view[live] + 0.5 * b * length)) * sun_transmittance(z)
+            )
+            tau_view[live] += b * length
+        radiance *= albedo * phase
+        if scene.ground_albedo is not None:
+            ground = (t_in < t_out) & (
+                np.abs(origin[2] + t_out * rays[..., 2] - z_edges[0]) <= 1e-9 + 1e-9 * t_out
+            )
+            radiance += np.where(
+                ground,
+                scene.ground_albedo * mu0 / np.pi * sun_transmittance(z_edges[0])
+                * np.exp(-tau_view),
+                0.0,
+            )
+        out[v] = radiance.mean(axis=-1)
+    return out
+
+
+def cloud_masks(
+    measurements: xr.Dataset, template: xr.Dataset, threshold: float | None = None
+) -> xr.Dataset:
+    """Cloudy pixels of every view.
+
+    The excess e = L - L_clear of each pixel over its clear-sky background
+    (:func:`clear_sky_background`) is cloudy when
+
+        e > max(SIGNAL_FRACTION * e_peak,v, NOISE_MULTIPLE * sigma),
+
+    with e_peak,v the ``SIGNAL_PERCENTILE`` (99th) percentile of the excess over the view's
+    pixels that look into the medium (its cloud signal), sigma the pixel's
+    ``radiance_noise_std`` (else ``radiance_std_error``, else 0), SIGNAL_FRACTION = 0.02
+    and NOISE_MULTIPLE = 3. The noise term keeps noise out; the fraction term is a floor for
+    measurements with small or no noise estimates (it covers the error of the clear-sky
+    model, 1-2.5 % of the air's radiance, and air lit by the cloud). A given ``threshold``
+    [radiance units] replaces the rule in every view. NaN pixels are never cloudy.
+
+    Returns:
+        A Dataset with ``cloud_mask`` (view, row, col) int8 (1 cloudy),
+        ``clear_sky_radiance`` (view, row, col) and ``signal_threshold`` (view), the
+        fraction term of the rule (or the given threshold).
+    """
+    radiance = measurements["radiance"].values
+    sigma = np.zeros_like(radiance)
+    for name in ("radiance_noise_std", "radiance_std_error"):
+        if name in measurements:
+            sigma = measurements[name].values
+            break
+    scene = Scene.from_dataset(measurements)
+    background = clear_sky_background(scene, template)
+    excess = radiance - background
+    lo, hi = box_corners(cell_edges(template))
+    if scene.periodic:
+        lo[:2], hi[:2] = -np.inf, np.inf
+    cams = camera_arrays(scene.cameras)
+    signal = np.zeros(radiance.shape[0])
+    mask = np.zeros(radiance.shape, dtype=bool)
+    for v in range(radiance.shape[0]):
+        if threshold is None:
+            t_in, t_out = ray_box(cams.position[v], pixel_rays(cams, v)[:, :, 0], lo, hi)
+            seen = excess[v][(t_in < t_out) & np.isfinite(excess[v])]
+            if seen.size:
+                signal[v] = SIGNAL_FRACTION * max(np.percentile(seen, SIGNAL_PERCENTILE), 0.0)
+            pixel_threshold = np.maximum(signal[v], NOISE_MULTIPLE * sigma[v])
+        else:
+            signal[v] = pixel_threshold = float(threshold)
+        with np.errstate(invalid="ignore"):
+            mask[v] = excess[v] > pixel_threshold
+    dims = ("view", "row", "col")
+    rule = (
+        f"radiance above the clear-sky background by more than max({SIGNAL_FRACTION:g} x "
+        f"the view's p{SIGNAL_PERCENTILE:g} excess, {NOISE_MULTIPLE:g} x the pixel's noise "
+        "std)" if threshold is None else f"radiance above the clear-sky background by more "
+        f"than {threshold:g}"
+    )
+    return xr.Dataset(
+        {
+            "cloud_mask": (dims, mask.astype(np.int8), {
+                "units": "1", "long_name": "pixel judged cloudy (1) or clear (0)",
+                "comment": rule}),
+            "clear_sky_radiance": (dims, background, {
+                "units": "1", "long_name": "clear-sky background radiance (air, ground)"}),
+            "signal_threshold": ("view", signal, {
+                "units": "1", "long_name": "cloudy-pixel threshold above the background "
+                "(before the noise term)"}),
+        },
+        coords={"view": measurements["view"].values},
+    )
