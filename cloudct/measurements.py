@@ -1,4 +1,8 @@
-"""Synthetic multi-view measurements: rendered images plus a camera noise model.
+"""The measurement format (what a retrieval reads), and synthetic measurements.
+
+A *measurement set* holds multi-view images with their cameras and the sun; its schema,
+for users who bring their own images, is docs/measurements.md. :func:`validate_measurements`
+checks it, :func:`save_measurements` and :func:`load_measurements` write and read it.
 
 :func:`synthesize_measurements` renders a medium with many photons
 (:func:`cloudct.mc.render.render`, forward estimator) and optionally adds camera noise

@@ -3,6 +3,8 @@ cloud generators."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import xarray as xr
@@ -192,3 +194,48 @@ def test_blob_cloud_is_an_ellipsoid_of_constant_extinction():
     assert volume == pytest.approx(4.0 / 3.0 * np.pi * 0.14 * 0.14 * 0.224, rel=0.05)
     with pytest.raises(ValueError, match="no cell centre"):
         blob_cloud(8, 8, 8, centre=(5.0, 5.0, 5.0))
+
+
+# ---------------------------------------------------------------------------------------
+# The schema page's example (docs/measurements.md), as it stands on the page
+# ---------------------------------------------------------------------------------------
+
+
+def schema_page_example() -> dict:
+    """The namespace of the first Python block of docs/measurements.md, executed."""
+    page = (Path(__file__).resolve().parents[1] / "docs" / "measurements.md").read_text()
+    code = page.split("```python\n", 1)[1].split("```", 1)[0]
+    namespace: dict = {}
+    exec(compile(code, "docs/measurements.md", "exec"), namespace)
+    return namespace
+
+
+def test_a_file_built_from_arrays_as_the_schema_page_shows_runs_through_carve_and_retrieve(
+    tmp_path, capsys
+):
+    example = schema_page_example()
+    cloud = small_blob()
+    rendered = synthesize_measurements(cloud, small_scene(cloud, npix=16), photons=100_000,
+                                       seed=3, progress=False)
+    arrays = {name: rendered[name].values for name in ("position", "lookat", "up", "fov")}
+    m = example["measurement_set"](
+        rendered["radiance"].values, rendered["radiance_noise_std"].values, **arrays,
+        sun_zenith=20.0, sun_azimuth=30.0,
+    )
+    m.to_netcdf(tmp_path / "measurements.nc")  # as another tool would write it
+    assert validate_measurements(load_measurements(tmp_path / "measurements.nc")) is None
+    edges = cell_edges(cloud)
+    save_medium(example["template_medium"](*edges), tmp_path / "template.nc")
+    assert main(["carve", str(tmp_path / "measurements.nc"), "--medium",
+                 str(tmp_path / "template.nc"), "-o", str(tmp_path / "init.nc"),
+                 "--fit-photons", "20000"]) == 0
+    assert main(["retrieve", str(tmp_path / "measurements.nc"), "--init",
+                 str(tmp_path / "init.nc"), "--iterations", "2", "--photons", "4000",
+                 "-o", str(tmp_path / "result.nc")]) == 0
+    result = xr.load_dataset(tmp_path / "result.nc")
+    assert result["log_loss"].size == 2 and np.all(np.isfinite(result["log_loss"].values))
+    with pytest.raises(MeasurementError, match="fov"):  # the page's validation is live
+        example["measurement_set"](
+            rendered["radiance"].values, rendered["radiance_noise_std"].values,
+            **{**arrays, "fov": np.full(9, np.inf)}, sun_zenith=20.0, sun_azimuth=30.0,
+        )
