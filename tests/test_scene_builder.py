@@ -140,3 +140,32 @@ def test_camera_seeing_part_of_a_periodic_field():
                       bwd.radiance.values, fwd.attrs["batches"],
                       reference_error=bwd.radiance_std_error.values,
                       label="part of a periodic field, forward vs backward")
+
+
+def test_several_rings_and_a_region(tmp_path):
+    """Two rings (the second with its own azimuths), aimed at a region of a wide domain:
+    the cameras look at the region's centre, the fitted field of view holds the region's
+    corners but not the whole domain, and every camera sees the medium."""
+    lo, hi = np.zeros(3), np.array([4.0, 4.0, 1.0])
+    region = (np.array([0.5, 0.5, 0.0]), np.array([1.5, 1.5, 1.0]))
+    scene = build_scene(lo, hi, preset="single-cloud", rings=[(29.0, None), (60.0, [0, 180])],
+                        region=region, distance=3.0)
+    assert len(scene.cameras) == 1 + 8 + 2
+    centre = 0.5 * (region[0] + region[1])
+    for cam in scene.cameras:
+        assert np.allclose(cam.lookat, centre)
+        offset = np.subtract(cam.position, centre)
+        assert np.isclose(np.linalg.norm(offset), 3.0)
+    zeniths = [math.degrees(math.acos((c.position[2] - centre[2]) / 3.0)) for c in scene.cameras]
+    assert np.allclose(sorted(zeniths), [0.0] + [29.0] * 8 + [60.0] * 2)
+    far = np.array([4.0, 4.0, 0.0])  # the domain's far corner
+    for cam in scene.cameras:
+        assert corners_in_view(cam, *region) and not corners_in_view(cam, far, far)
+    out = tmp_path / "scene.nc"
+    assert main(["scene", "-o", str(out), "--ring", "29", "--ring", "60:0,180", "--region",
+                 "0.2", "0.5", "0.2", "0.5", "0.5", "1.0", "--npix", "16"]) == 0
+    assert len(load_scene(out).cameras) == 11
+    with pytest.raises(ValueError, match="not both"):
+        build_scene(lo, hi, rings=[(29.0, None)], ring_zenith=40.0)
+    with pytest.raises(ValueError, match="region must be"):
+        build_scene(lo, hi, region=(hi, lo))

@@ -66,7 +66,9 @@ def _cli_scene(args: argparse.Namespace) -> int:
     scene = build_scene(
         np.array([e[0] for e in edges]), np.array([e[-1] for e in edges]),
         preset=args.preset, ring_zenith=args.ring_zenith, distance=args.distance,
-        altitude=args.altitude, azimuths=args.azimuths, npix=args.npix, fov=args.fov,
+        altitude=args.altitude, azimuths=args.azimuths, rings=args.ring,
+        region=None if args.region is None else (args.region[::2], args.region[1::2]),
+        npix=args.npix, fov=args.fov,
         sun_zenith=args.sun_zenith, sun_azimuth=args.sun_azimuth, boundary=args.boundary,
         ground_albedo=args.ground_albedo,
     )
@@ -81,6 +83,16 @@ def _cli_scene(args: argparse.Namespace) -> int:
         written += f" and {figure}"
     print(written)
     return 0
+
+
+def _ring(text: str) -> tuple[float, list[float] | None]:
+    """``ZENITH`` or ``ZENITH:AZ,AZ,...`` (degrees) of ``--ring``."""
+    zenith, _, azimuths = text.partition(":")
+    try:
+        return float(zenith), ([float(a) for a in azimuths.split(",")] if azimuths else None)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"a ring is ZENITH or ZENITH:AZ,AZ,... in degrees, got {text!r}") from None
 
 
 def register_cli(subparsers: argparse._SubParsersAction) -> None:
@@ -128,6 +140,13 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
                        help="every camera at this height instead (the ring farther away)")
     s.add_argument("--azimuths", type=float, nargs="+", metavar="DEG",
                    help="the ring cameras' azimuths (default: 0 45 ... 315)")
+    s.add_argument("--ring", type=_ring, action="append", metavar="ZENITH[:AZ,AZ,...]",
+                   help="a ring of cameras at this zenith angle [deg] (azimuths default 0 "
+                   "45 ... 315); repeat for several rings (instead of --ring-zenith)")
+    s.add_argument("--region", type=float, nargs=6,
+                   metavar=("X0", "X1", "Y0", "Y1", "Z0", "Z1"),
+                   help="aim the cameras at this box [km] and fit the field of view to it "
+                   "(a part of a wide domain)")
     s.add_argument("--npix", type=int, metavar="N", help="image size, N x N pixels")
     s.add_argument("--fov", type=float, metavar="DEG", help="full field of view (default: "
                    "fitted to the box)")

@@ -116,6 +116,8 @@ def build_scene(
     npix: int | None = None,
     fov: float | None = None,
     azimuths: Sequence[float] | None = None,
+    rings: Sequence[tuple[float, Sequence[float] | None]] | None = None,
+    region: tuple[Sequence[float], Sequence[float]] | None = None,
     altitude: float | None = None,
     sun_zenith: float = 0.0,
     sun_azimuth: float = 0.0,
@@ -125,6 +127,12 @@ def build_scene(
     """A zenith camera and a ring (azimuths 0, 45, ..., 315 unless ``azimuths`` [deg, from
     +x toward +y] are given) aimed at the box centre, from a preset (:data:`PRESETS`) with
     any of its numbers overridden.
+
+    ``rings`` replaces the one ring by several: (zenith [deg], azimuths or None for 0, 45,
+    ..., 315) per ring, e.g. ``[(29, None), (60, [0, 90, 180, 270])]``. ``region`` = (lo,
+    hi) [km] aims the cameras at the centre of that box instead of the medium's, and fits
+    the field of view (and the ``nadir`` preset's distance) to it: cameras that look at a
+    part of a wide domain. The region need not lie inside the medium.
 
     ``distance`` [km] is from the box centre; the ``nadir`` preset (a steep ring for domains
     much wider than they are tall) puts the cameras at 1.2 x the box's horizontal
@@ -140,33 +148,43 @@ def build_scene(
     lo = np.asarray(box_min, dtype=float)
     hi = np.asarray(box_max, dtype=float)
     base = PRESETS[preset]
-    zenith = base["ring_zenith"] if ring_zenith is None else float(ring_zenith)
     npix = base["npix"] if npix is None else int(npix)
-    azimuths = np.arange(0.0, 360.0, 45.0) if azimuths is None else np.asarray(azimuths, float)
-    centre = 0.5 * (lo + hi)
+    if rings is None:
+        rings = [(base["ring_zenith"] if ring_zenith is None else ring_zenith, azimuths)]
+    elif ring_zenith is not None or azimuths is not None:
+        raise ValueError("give rings, or one ring's zenith and azimuths, not both")
+    rings = [(float(z), np.arange(0.0, 360.0, 45.0) if a is None else np.asarray(a, float))
+             for z, a in rings]
+    target_lo, target_hi = (lo, hi) if region is None else (
+        np.asarray(region[0], dtype=float), np.asarray(region[1], dtype=float))
+    if target_lo.shape != (3,) or target_hi.shape != (3,) or not np.all(target_hi > target_lo):
+        raise ValueError(f"region must be (lo, hi) with hi > lo in x, y and z, got {region}")
+    centre = 0.5 * (target_lo + target_hi)
     if altitude is not None:
         if distance is not None:
             raise ValueError("give the cameras' distance or their altitude, not both")
         if not altitude > hi[2]:
             raise ValueError(f"altitude {altitude} km is not above the box (top {hi[2]} km)")
-        if not 0.0 <= zenith < 90.0:
-            raise ValueError(f"with an altitude the ring zenith must be in [0, 90), got {zenith}")
+        if not all(0.0 <= zenith < 90.0 for zenith, _ in rings):
+            raise ValueError("with an altitude the ring zeniths must be in [0, 90), got "
+                             f"{[zenith for zenith, _ in rings]}")
         distance = altitude - centre[2]
-        ring_distance = distance / math.cos(math.radians(zenith))
-    else:
+    elif distance is None:
+        distance = base["distance"]
         if distance is None:
-            distance = base["distance"]
-            if distance is None:
-                distance = max(2.0, 1.2 * float(np.hypot(*(hi - lo)[:2])))
-        ring_distance = distance
+            distance = max(2.0, 1.2 * float(np.hypot(*(target_hi - target_lo)[:2])))
     if not distance > 0.0:
         raise ValueError(f"distance must be positive (km), got {distance}")
     if fov is None:
-        fov = box_fitting_fov(lo, hi, distance)
+        fov = box_fitting_fov(target_lo, target_hi, distance)
     cameras = ring_cameras(tuple(centre), distance=distance, zenith=0.0, azimuths=[],
                            fov=fov, npix=npix)
-    cameras += ring_cameras(tuple(centre), distance=ring_distance, zenith=zenith,
-                            azimuths=azimuths, fov=fov, npix=npix, include_zenith=False)
+    for zenith, ring_azimuths in rings:  # at an altitude, each ring is farther away
+        ring_distance = (distance if altitude is None
+                         else distance / math.cos(math.radians(zenith)))
+        cameras += ring_cameras(tuple(centre), distance=ring_distance, zenith=zenith,
+                                azimuths=ring_azimuths, fov=fov, npix=npix,
+                                include_zenith=False)
     scene = Scene(cameras=cameras, sun=Sun(sun_zenith, sun_azimuth), boundary=boundary,
                   ground_albedo=ground_albedo)
     check_scene(scene, tuple(np.array([a, b]) for a, b in zip(lo, hi, strict=True)))
