@@ -11,7 +11,8 @@ from cloudct.recycling.replay import (
     replay_images,
     replay_render,
 )
-from cloudct.recycling.store import MemoryBudgetError, PathStore, record_paths, sort_paths
+from cloudct.recycling.store import PathStore, record_paths, sort_paths
+from cloudct.recycling.store_memory import MemoryBudgetError
 
 __all__ = [
     "AdaptiveESS",

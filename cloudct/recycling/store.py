@@ -33,6 +33,10 @@ Path sorting (seed paper Sec. 5.3): :func:`sort_paths` reorders each batch's pat
 number of records, so that paths of the same length lie together (what GPU threads in a
 group need). The CPU kernels visit each batch's paths in photon order through ``slot``, so
 sorted and unsorted stores give bitwise identical results.
+
+The recording kernels are in :mod:`cloudct.recycling.record_kernels`, the recording of
+camera connections within a memory budget in :mod:`cloudct.recycling.connection_recording`,
+and the stores' sizes in bytes in :mod:`cloudct.recycling.store_memory`.
 """
 
 from __future__ import annotations
@@ -49,14 +53,21 @@ import xarray as xr
 from cloudct.mc.forward import ENTRY, ESCAPE, GROUND, SCATTER, PathRecord
 from cloudct.mc.render import kernel_inputs, run_in_rounds
 from cloudct.mc.scene import Scene
+from cloudct.recycling.connection_recording import record_connections_within_budget
 from cloudct.recycling.path_terms import StoreArrays, flat_total_extinction
 from cloudct.recycling.record_kernels import (
-    connection_batches,
     count_records,
     measure_segments,
     reference_terms,
     write_crossings,
     write_records,
+)
+from cloudct.recycling.store_memory import (
+    MemoryBudgetError,
+    budget_message,
+    connections_bytes,
+    crossings_bytes,
+    lean_bytes,
 )
 
 STORAGE = ("auto", "connections", "crossings", "lean")
@@ -64,40 +75,10 @@ STORAGE = ("auto", "connections", "crossings", "lean")
 #: Memory that ``storage="auto"`` lets camera connections take when no budget is given.
 AUTO_CONNECTIONS_BUDGET = 2 * 2**30
 
-#: Bytes of one record besides the voxel index: position and direction (6 float64),
-#: length, the two reference terms, the aiming weight (4 float64) and the kind (int8).
-RECORD_BYTES = 6 * 8 + 4 * 8 + 1
-#: Bytes of one stored path: CSR offset, storage slot and photon index (int64 each).
-PATH_BYTES = 3 * 8
-#: Bytes of one camera connection besides its crossings: pixel (int32), cosine,
-#: 1 / (r^2 Omega), frozen optical depth (float64) and its CSR offset (int64).
-CONNECTION_BYTES = 4 + 3 * 8 + 8
-
-
-class MemoryBudgetError(ValueError):
-    """The memory budget cannot hold the paths in the requested storage mode."""
-
 
 def voxel_dtype(shape: tuple[int, int, int]) -> type:
     """int32 voxel indices where they fit, else int64."""
     return np.int32 if int(np.prod(shape)) < 2**31 else np.int64
-
-
-def lean_bytes(records: int, paths: int, voxel_size: int) -> int:
-    """Bytes of a lean store with ``records`` records of ``paths`` paths."""
-    return records * (RECORD_BYTES + voxel_size) + paths * PATH_BYTES + 4 * 8  # + 4 CSR ends
-
-
-def crossings_bytes(records: int, crossings: int, voxel_size: int) -> int:
-    """Bytes that the crossings add to a lean store (CSR offsets and the crossings)."""
-    return records * 8 + crossings * (voxel_size + 8)
-
-
-def connections_bytes(records: int, connections: int, crossings: int, voxel_size: int) -> int:
-    """Bytes that camera connections add to a crossings store: CSR offsets, pixel (int32),
-    cosine, 1 / (r^2 Omega) and frozen optical depth (float64) per connection, and the
-    crossings of variable voxels."""
-    return records * 8 + connections * CONNECTION_BYTES + crossings * (voxel_size + 8)
 
 
 @dataclass
@@ -201,17 +182,6 @@ class PathStore:
         }
 
 
-def _budget_message(budget: float, need: int, what: str, batches: int) -> str:
-    per_batch = need / batches
-    text = (
-        f"memory_budget of {budget / 2**20:.3g} MiB cannot hold the paths: {what} storage "
-        f"needs {need / 2**20:.3g} MiB ({per_batch / 2**20:.3g} MiB per batch of photons)"
-    )
-    if budget < per_batch:
-        text += "; the budget is too small for even one batch"
-    return text + ". Raise memory_budget, use fewer photons, or storage='lean'/'auto'."
-
-
 def record_paths(
     medium: xr.Dataset,
     scene: Scene,
@@ -297,7 +267,7 @@ def record_paths(
     nrec = int(path_start[-1])
     lean = lean_bytes(nrec, npaths, vsize)
     if memory_budget is not None and lean > memory_budget:
-        raise MemoryBudgetError(_budget_message(memory_budget, lean, "lean", batches))
+        raise MemoryBudgetError(budget_message(memory_budget, lean, "lean", batches))
 
     # pass 2: the records themselves
     record = PathRecord(
@@ -336,7 +306,7 @@ def record_paths(
         full = lean + crossings_bytes(nrec, ncross, vsize)
         fits = memory_budget is None or full <= memory_budget
         if storage == "crossings" and not fits:
-            raise MemoryBudgetError(_budget_message(memory_budget, full, "crossings", batches))
+            raise MemoryBudgetError(budget_message(memory_budget, full, "crossings", batches))
         if fits:
             chosen = "crossings"
             crossing_start = np.zeros(nrec + 1, dtype=np.int64)
@@ -353,7 +323,7 @@ def record_paths(
     beta = flat_total_extinction(k.grid)
     frozen = None
     if storage == "connections" and chosen != "crossings":
-        raise MemoryBudgetError(_budget_message(memory_budget, full, "crossings", batches))
+        raise MemoryBudgetError(budget_message(memory_budget, full, "crossings", batches))
     if storage in ("auto", "connections") and chosen == "crossings":
         flat_variable = (
             np.ones(beta.size, dtype=bool) if variable is None else variable.ravel()
@@ -361,7 +331,7 @@ def record_paths(
         budget = memory_budget
         if budget is None and storage == "auto":
             budget = AUTO_CONNECTIONS_BUDGET
-        arrays, chosen = _record_connections(
+        arrays, chosen = record_connections_within_budget(
             k, arrays, beta, flat_variable, per_batch, storage, budget, full, vsize, batches
         )
         if chosen == "connections" and not flat_variable.all():
@@ -393,111 +363,6 @@ def record_paths(
         store = sort_paths(store)
     store.info["record_time"] = time.perf_counter() - start_time
     return store
-
-
-def _record_connections(
-    k, arrays: StoreArrays, beta: np.ndarray, variable: np.ndarray, per_batch: int,
-    storage: str, budget: float | None, store_bytes: int, voxel_size: int, batches: int,
-) -> tuple[StoreArrays, str]:
-    """Record the camera connections of every event record when the store with them fits
-    ``budget``: ``(arrays, "connections")``; else ``(arrays, "crossings")``
-    (``storage="auto"``) or :class:`MemoryBudgetError`.
-
-    Each connection is walked once: the first two batches are counted, every batch gets
-    room for 1.2 x the larger of their counts (within the budget), all are walked once
-    writing into their rooms, and the rooms are closed up. The walk counts everything, so
-    the budget is decided on exact sizes; where a batch overflowed its room (rare), or the
-    rooms did not fit the budget, a second walk writes the connections at their exact
-    places.
-    """
-    nrec = arrays.kind.size
-    capacity = 4 * sum(e.size - 1 for e in k.edges) + 16
-    connections = np.zeros(nrec, dtype=np.int64)
-    crossings = np.zeros(nrec, dtype=np.int64)
-
-    def walk(S: StoreArrays, write: bool, batch_connection, batch_crossing) -> None:
-        connection_batches(
-            k.grid, k.cams, k.copies, k.periodic, beta, variable, S, per_batch, capacity,
-            write, connections, crossings, batch_connection, batch_crossing,
-        )
-
-    record_bounds = arrays.path_start[::per_batch]  # each batch's first record, and the end
-
-    def batch_totals(counts: np.ndarray) -> np.ndarray:
-        total = np.zeros(nrec + 1, dtype=np.int64)
-        np.cumsum(counts, out=total[1:])
-        return total[record_bounds[1:]] - total[record_bounds[:-1]]
-
-    pilot = np.zeros(min(batches, 2) + 1, dtype=np.int64)
-    walk(arrays, False, pilot, pilot)
-    npilot = pilot.size - 1
-    room = np.array([batch_totals(connections)[:npilot].max(),
-                     batch_totals(crossings)[:npilot].max()]) * 1.2 + 16
-    room_bytes = batches * (room[0] * CONNECTION_BYTES + room[1] * (voxel_size + 8))
-    free = np.inf if budget is None else budget - store_bytes - 8 * (nrec + 1)
-    room = np.floor(room * min(1.0, max(free, 0.0) / room_bytes)).astype(np.int64)
-    written = _connection_arrays(arrays, batches * room[0], batches * room[1])
-    batch_connection = np.arange(batches + 1, dtype=np.int64) * room[0]
-    batch_crossing = np.arange(batches + 1, dtype=np.int64) * room[1]
-    walk(written, True, batch_connection, batch_crossing)
-    per_connection, per_crossing = batch_totals(connections), batch_totals(crossings)
-    nconn, ncross = int(per_connection.sum()), int(per_crossing.sum())
-    need = store_bytes + connections_bytes(nrec, nconn, ncross, voxel_size)
-    if budget is not None and need > budget:
-        if storage == "connections":
-            raise MemoryBudgetError(_budget_message(budget, need, "connections", batches))
-        return arrays, "crossings"
-    offsets = (np.zeros(batches + 1, dtype=np.int64), np.zeros(batches + 1, dtype=np.int64))
-    np.cumsum(per_connection, out=offsets[0][1:])
-    np.cumsum(per_crossing, out=offsets[1][1:])
-    if per_connection.max() <= room[0] and per_crossing.max() <= room[1]:
-        _close_up(written, batch_connection, batch_crossing, *offsets, nconn, ncross)
-    else:  # a second walk, to the exact places
-        del written
-        written = _connection_arrays(arrays, nconn, ncross)
-        walk(written, True, *offsets)
-    np.cumsum(written.connection_crossing_start, out=written.connection_crossing_start)
-    connection_start = np.zeros(nrec + 1, dtype=np.int64)
-    np.cumsum(connections, out=connection_start[1:])
-    return written._replace(connection_start=connection_start), "connections"
-
-
-def _connection_arrays(arrays: StoreArrays, nconn: int, ncross: int) -> StoreArrays:
-    """``arrays`` with room for ``nconn`` camera connections and ``ncross`` crossings."""
-    return arrays._replace(
-        connection_pixel=np.empty(nconn, dtype=np.int32),
-        connection_cosine=np.empty(nconn),
-        connection_factor=np.empty(nconn),
-        connection_tau=np.empty(nconn),
-        connection_crossing_start=np.zeros(nconn + 1, dtype=np.int64),
-        connection_voxel=np.empty(ncross, dtype=arrays.voxel.dtype),
-        connection_length=np.empty(ncross),
-    )
-
-
-def _close_up(
-    a: StoreArrays, room_connection: np.ndarray, room_crossing: np.ndarray,
-    connection: np.ndarray, crossing: np.ndarray, nconn: int, ncross: int,
-) -> None:
-    """Move each batch's connections and crossings from its room (``room_*[b]`` on) to its
-    place (``connection[b]``, ``crossing[b]``; never later than the room) and shrink the
-    arrays in place to ``nconn`` and ``ncross``."""
-    per_connection = [
-        (a.connection_pixel, 0), (a.connection_cosine, 0), (a.connection_factor, 0),
-        (a.connection_tau, 0), (a.connection_crossing_start, 1),  # counts at c + 1
-    ]
-    for b in range(connection.size - 1):
-        n = connection[b + 1] - connection[b]
-        for array, shift in per_connection:
-            src = room_connection[b] + shift
-            array[connection[b] + shift : connection[b] + shift + n] = array[src : src + n]
-        n = crossing[b + 1] - crossing[b]
-        for array in (a.connection_voxel, a.connection_length):
-            array[crossing[b] : crossing[b] + n] = array[room_crossing[b] : room_crossing[b] + n]
-    for array, shift in per_connection:
-        array.resize(nconn + shift, refcheck=False)
-    for array in (a.connection_voxel, a.connection_length):
-        array.resize(ncross, refcheck=False)
 
 
 def run_batches(
@@ -612,6 +477,9 @@ __all__ = [
     "MemoryBudgetError",
     "AUTO_CONNECTIONS_BUDGET",
     "PathStore",
+    "connections_bytes",
+    "crossings_bytes",
+    "lean_bytes",
     "record_paths",
     "sort_paths",
 ]
