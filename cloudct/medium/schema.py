@@ -1,0 +1,89 @@
+"""The medium schema: the variables and coordinates a medium Dataset may hold (their
+dimensions, units and long names), the unit spellings accepted, the defaults, and the
+error raised for a Dataset or constructor input that does not follow the schema.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+#: The seed paper's defaults (CONVENTIONS.md) and the default droplet effective variance
+#: used by the Mie optics when a microphysical medium has no ``veff``.
+DEFAULT_AIR_EXTINCTION = 0.04
+DEFAULT_AIR_ALBEDO = 0.912
+DEFAULT_CLOUD_ALBEDO = 0.99
+DEFAULT_CLOUD_G = 0.85
+DEFAULT_VEFF = 0.1
+
+GRID_DIMS = ("x", "y", "z")
+
+#: Relative tolerance (of the local spacing) for "uniform spacing" and "matching edges".
+SPACING_RTOL = 1e-6
+
+_XYZ = GRID_DIMS
+_SCALAR: tuple[str, ...] = ()
+
+
+class MediumError(ValueError):
+    """A medium Dataset (or constructor input) that does not follow the medium schema."""
+
+
+class DomainBounds(NamedTuple):
+    """Outer faces of the medium box, in km."""
+
+    x_min: float
+    x_max: float
+    y_min: float
+    y_max: float
+    z_min: float
+    z_max: float
+
+
+class _Spec(NamedTuple):
+    dims: tuple[tuple[str, ...], ...]  # the allowed dimension tuples
+    units: str  # canonical CF units
+    long_name: str
+
+
+_VARIABLES: dict[str, _Spec] = {
+    "lwc": _Spec((_XYZ,), "g m-3", "liquid water content"),
+    "reff": _Spec((_XYZ,), "micron", "droplet effective radius"),
+    "veff": _Spec((_SCALAR, _XYZ), "1", "droplet effective variance"),
+    "cloud_extinction": _Spec((_XYZ,), "km-1", "cloud extinction coefficient"),
+    "cloud_albedo": _Spec((_SCALAR, _XYZ), "1", "cloud single-scattering albedo"),
+    "cloud_g": _Spec((_SCALAR, _XYZ), "1", "cloud Henyey-Greenstein asymmetry parameter"),
+    "cloud_phase": _Spec(
+        (("phase_table", "scattering_angle"),), "sr-1", "cloud phase function (tabulated)"
+    ),
+    "cloud_phase_index": _Spec((_XYZ,), "1", "row of cloud_phase used in each cell"),
+    "air_extinction": _Spec((_SCALAR, ("z",), _XYZ), "km-1", "air extinction coefficient"),
+    "air_albedo": _Spec((_SCALAR,), "1", "air single-scattering albedo"),
+}
+
+_COORDINATES: dict[str, _Spec] = {
+    "x": _Spec((("x",),), "km", "x coordinate of cell centres (east)"),
+    "y": _Spec((("y",),), "km", "y coordinate of cell centres (north)"),
+    "z": _Spec((("z",),), "km", "altitude of cell centres"),
+    "z_bounds": _Spec((("z", "nv"),), "km", "altitude of cell lower and upper edges"),
+    "scattering_angle": _Spec((("scattering_angle",),), "degree", "scattering angle"),
+}
+
+_EXTRA_COORD_ATTRS = {
+    "x": {"axis": "X"},
+    "y": {"axis": "Y"},
+    "z": {"axis": "Z", "positive": "up"},
+}
+
+#: Spellings accepted in a ``units`` attribute, per canonical unit.
+_UNIT_SPELLINGS = {
+    "km": {"km", "kilometer", "kilometre", "kilometers", "kilometres"},
+    "km-1": {"km-1", "1/km", "/km", "km^-1", "km**-1"},
+    "g m-3": {"g m-3", "g/m3", "g/m^3", "g m^-3", "g m**-3", "g.m-3"},
+    "micron": {"micron", "microns", "um", "µm", "micrometer", "micrometre", "micrometers"},
+    "1": {"1", "", "dimensionless"},
+    "sr-1": {"sr-1", "1/sr", "/sr", "sr^-1", "sr**-1"},
+    "degree": {"degree", "degrees", "deg"},
+}
+
+_MICROPHYSICAL = ("lwc", "reff", "veff")
+_OPTICAL = ("cloud_extinction", "cloud_albedo", "cloud_g", "cloud_phase", "cloud_phase_index")
