@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import Any
 
 import xarray as xr
 
@@ -18,13 +19,21 @@ from cloudct.measurements import load_measurements, save_measurements, synthesiz
 from cloudct.medium import load_medium, save_medium
 from cloudct.netcdf import load_netcdf, require_variables
 from cloudct.retrieval.carving import carve, initial_medium
-from cloudct.retrieval.loop import (
+from cloudct.retrieval.config import (
     AVERAGING,
+    DEPENDENT,
     OPTIMIZERS,
     RECYCLING,
-    Retrieval,
+    STAGE_FIELDS,
+    ResumeConflict,
     RetrievalConfig,
+    config_from_settings,
+    config_to_toml,
+    load_config,
+    resume_message,
+    toml_value,
 )
+from cloudct.retrieval.loop import Retrieval
 from cloudct.retrieval.report import write_report
 
 
@@ -44,28 +53,119 @@ def _initial_medium(measurements: xr.Dataset, init: str, template: str | None) -
     return initial_medium(carve(measurements, grid), grid)
 
 
+#: The demo's run settings (``cloudct demo``; ``cloudct retrieve --config`` reads it too).
+DEMO_CONFIG = Path(__file__).resolve().parents[1] / "data" / "demo.toml"
+#: Options of a run (argparse's dest) -> their :class:`RetrievalConfig` field.
+OPTION_FIELDS = {dest: dest for dest in (
+    "iterations", "photons", "optimizer", "step", "trust_region", "sparsity", "time_limit",
+    "recycling", "period", "min_ess", "recycling_memory", "stages", "stage_photons",
+    "voxel_blocks", "stage_steps", "gradient_smoothing", "image_photons", "saturation_window",
+    "step_decay", "estimator", "pixel_sampling", "averaging", "averaging_decay", "seed",
+    "checkpoint_every",
+)} | {"fresh_gradient": "recycle_gradient"}  # --fresh-gradient: recycle_gradient = false
+OPTION_NAMES = {field: "--" + dest.replace("_", "-") for dest, field in OPTION_FIELDS.items()}
+
+
+def given_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The :class:`RetrievalConfig` fields given on the command line (an option left out
+    is None)."""
+    given = {}
+    for dest, field in OPTION_FIELDS.items():
+        value = getattr(args, dest, None)
+        if value is None:
+            continue
+        if dest == "fresh_gradient":
+            value = not value
+        given[field] = tuple(value) if isinstance(value, list) else value
+    return given
+
+
+def run_settings(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, str | None]]:
+    """The settings of a run, later ones first: the options on the command line, the
+    ``--config`` file, the command's defaults (its bundled configuration file, the
+    iterations and photons of :func:`add_run_options`), RetrievalConfig's. Returns the
+    settings and where those of the command line (None) and of --config (the file) came
+    from."""
+    settings: dict[str, Any] = {}
+    if getattr(args, "defaults_file", None) is not None:
+        settings.update(load_config(args.defaults_file))
+    settings.update(getattr(args, "run_defaults", {}))
+    origins: dict[str, str | None] = {}
+    if getattr(args, "config", None) is not None:
+        from_file = load_config(args.config, base=settings)
+        settings.update(from_file)
+        origins.update(dict.fromkeys(from_file, args.config))
+    given = given_options(args)
+    if "stages" in given:  # the file's other per-stage settings must fit the new stages
+        misfits = [OPTION_NAMES[f] for f in STAGE_FIELDS if f not in given and origins.get(f)
+                   and len(settings[f]) != len(given["stages"])]
+        if misfits:
+            raise ValueError(
+                f"--stages gives {len(given['stages'])} stages and {args.config} "
+                f"{len(settings['stages'])} [[stage]] rows: give {', '.join(misfits)} too, or "
+                "edit the file's rows"
+            )
+    settings.update(given)
+    origins.update(dict.fromkeys(given))
+    return settings, origins
+
+
 def config_from_options(args: argparse.Namespace, **settings) -> RetrievalConfig:
-    """The run options of :func:`add_run_options` as a configuration; ``settings``
-    (other :class:`RetrievalConfig` fields) are added and take precedence."""
-    options = dict(
-        iterations=args.iterations, photons=args.photons, optimizer=args.optimizer,
-        step=args.step, trust_region=args.trust_region, sparsity=args.sparsity,
-        time_limit=args.time_limit, recycling=args.recycling, period=args.period,
-        min_ess=args.min_ess, recycling_memory=args.recycling_memory,
-        recycle_gradient=not args.fresh_gradient,
-        stages=args.stages, stage_photons=args.stage_photons, voxel_blocks=args.voxel_blocks,
-        stage_steps=args.stage_steps, gradient_smoothing=args.gradient_smoothing,
-        image_photons=args.image_photons,
-        saturation_window=args.saturation_window, step_decay=args.step_decay,
-        estimator=args.estimator, pixel_sampling=args.pixel_sampling,
-        averaging=args.averaging, averaging_decay=args.averaging_decay,
-    )
-    return RetrievalConfig(**{**options, **settings})
+    """The configuration of a run's options (:func:`add_run_options`, --config and the
+    command's defaults, :func:`run_settings`); ``settings`` (other :class:`RetrievalConfig`
+    fields) are added and take precedence."""
+    return config_from_settings({**run_settings(args)[0], **settings})
+
+
+def _write_config(args: argparse.Namespace) -> int:
+    """``--write-config``: the run's settings as a commented TOML file on stdout."""
+    settings, _ = run_settings(args)
+    config = config_from_settings(settings)
+    unset = tuple(f for f in DEPENDENT if f not in settings)
+    print(config_to_toml(
+        config, comments=True, unset=unset,
+        header=f"cloudct {args.command} --config FILE: the settings of a retrieval run; "
+        "options given on the\ncommand line override the file's (docs/retrieval_config.md)",
+    ), end="")
+    return 0
+
+
+def _resume_conflict(conflicts: dict, origins: dict[str, str | None]) -> str:
+    """The message of settings asked of a resumed run that differ from the checkpoint's,
+    each as the command line or the --config file gave it."""
+
+    def shown(value: Any, origin: str | None) -> str:  # as the command line or a file has it
+        if origin is not None:
+            return toml_value(value)
+        return " ".join(str(v) for v in value) if isinstance(value, tuple) else str(value)
+
+    lines = {}
+    for field, (asked, kept) in conflicts.items():
+        origin = origins[field]
+        if origin is None and field == "recycle_gradient":
+            lines["--fresh-gradient"] = f"recycle_gradient = {toml_value(kept)}"
+            continue
+        if origin is None:
+            label = f"{OPTION_NAMES[field]} {shown(asked, None)}"
+        elif field in STAGE_FIELDS:
+            label = f"{origin}'s [[stage]] {STAGE_FIELDS[field]} values {toml_value(asked)}"
+        else:
+            label = f"{origin}'s {field} = {toml_value(asked)}"
+        lines[label] = shown(kept, origin)
+    return resume_message(lines)
 
 
 def _cli_retrieve(args: argparse.Namespace) -> int:
+    if args.write_config:
+        return _write_config(args)
+    if args.measurements is None:
+        raise ValueError("the measurement file is missing: cloudct retrieve MEASUREMENTS "
+                         "(or --write-config)")
     output = Path(args.output)
     _refuse_overwrite(output, args.overwrite)
+    settings, origins = run_settings(args)  # a bad --config file ends here, before any work
+    if not args.resume:
+        config_from_settings(settings)
     measurements = load_measurements(args.measurements)
     truth = load_medium(args.truth) if args.truth else None
     initial = _initial_medium(measurements, args.init, args.medium)
@@ -78,14 +178,18 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
     try:
         where = {"backend": args.backend, "client": client}
         if args.resume:
-            run = Retrieval.resume(checkpoint, measurements, initial, truth=truth,
-                                   iterations=args.iterations, **where)
+            asked = {field: settings[field] for field in origins}
+            try:
+                run = Retrieval.resume(checkpoint, measurements, initial, truth=truth,
+                                       settings=asked, **where)
+            except ResumeConflict as err:
+                raise ValueError(_resume_conflict(err.conflicts, origins)) from None
         else:
-            settings = dict(seed=args.seed, checkpoint_every=args.checkpoint_every)
-            if client is not None and args.estimator is None:  # what the workers trace
-                settings["estimator"] = ["score"] * len(args.stages)
-            config = config_from_options(args, **settings)
-            run = Retrieval(measurements, initial, config, truth=truth, **where)
+            if client is not None and "estimator" not in settings:  # what the workers trace
+                stages = settings.get("stages", RetrievalConfig.stages)
+                settings["estimator"] = ("score",) * len(stages)
+            run = Retrieval(measurements, initial, config_from_settings(settings), truth=truth,
+                            **where)
         result = run.run(checkpoint=checkpoint, progress=None)
     finally:
         if client is not None:
@@ -109,6 +213,9 @@ def _cli_report(args: argparse.Namespace) -> int:
 
 def _cli_demo(args: argparse.Namespace) -> int:
     """The whole chain on the bundled single cloud: measurements, carving, retrieval, report."""
+    if args.write_config:
+        return _write_config(args)
+    config = config_from_options(args)
     out = Path(args.output)
     _refuse_overwrite(out / "result.nc", args.overwrite)
     out.mkdir(parents=True, exist_ok=True)
@@ -121,8 +228,8 @@ def _cli_demo(args: argparse.Namespace) -> int:
     print("2/4 space carving ...")
     initial = initial_medium(carve(measurements, truth), truth)
     save_medium(initial, out / "init.nc", overwrite=True)
-    print(f"3/4 retrieving ({args.iterations} iterations, {args.photons} photons each) ...")
-    run = Retrieval(measurements, initial, config_from_options(args), truth=truth)
+    print(f"3/4 retrieving ({config.iterations} iterations, {config.photons} photons each) ...")
+    run = Retrieval(measurements, initial, config, truth=truth)
     result = run.run(checkpoint=out / "checkpoint.nc", progress=None)
     result.to_netcdf(out / "result.nc")
     print("4/4 report ...")
@@ -134,95 +241,126 @@ def _cli_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_run_options(p: argparse.ArgumentParser, iterations: int, photons: int) -> None:
+def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
+                    photons: int | None = None) -> None:
     """The options of a retrieval run (iterations, photons, optimiser, step, coarse-to-fine
-    stages, recycling) with these defaults for ``--iterations`` and ``--photons``; the others
-    default to :class:`RetrievalConfig`'s."""
-    p.add_argument("--iterations", type=int, default=iterations)
-    p.add_argument("--photons", type=int, default=photons,
-                   help="gradient photons per iteration (the images': x --image-photons)")
-    p.add_argument("--optimizer", choices=OPTIMIZERS, default=RetrievalConfig.optimizer,
-                   help="adam, sgd, or lbfgsb (L-BFGS-B windows on recycled paths)")
-    p.add_argument("--step", type=float, default=RetrievalConfig.step,
-                   help="step size [1/km per iteration] (adam, sgd)")
-    p.add_argument("--trust-region", type=float, default=RetrievalConfig.trust_region,
-                   help="lbfgsb: relative change of a voxel's extinction per window")
-    p.add_argument("--sparsity", type=float, default=RetrievalConfig.sparsity,
+    stages, recycling) with these defaults for ``--iterations`` and ``--photons`` (None:
+    :class:`RetrievalConfig`'s, or the command's configuration file's); the others default
+    to RetrievalConfig's. Every option defaults to None, so that :func:`given_options`
+    tells those given on the command line."""
+    c = RetrievalConfig
+    p.set_defaults(run_defaults={k: v for k, v in (("iterations", iterations),
+                                                   ("photons", photons)) if v is not None})
+    p.add_argument("--iterations", type=int,
+                   help=f"iterations in all (default {iterations or 'the configuration file'})")
+    p.add_argument("--photons", type=int,
+                   help="gradient photons per iteration (the images': x --image-photons; "
+                        f"default {photons or 'the configuration file'})")
+    p.add_argument("--optimizer", choices=OPTIMIZERS,
+                   help=f"adam, sgd, or lbfgsb (L-BFGS-B windows on recycled paths; default "
+                        f"{c.optimizer})")
+    p.add_argument("--step", type=float,
+                   help=f"step size [1/km per iteration] (adam, sgd; default {c.step})")
+    p.add_argument("--trust-region", type=float,
+                   help="lbfgsb: relative change of a voxel's extinction per window "
+                        f"(default {c.trust_region})")
+    p.add_argument("--sparsity", type=float,
                    help="weight of an L1 prior on the cloud extinction [1/km^2]: the loss "
                         "gains this x the loss of a dark medium x the cloud's extinction "
-                        "cross-section [km^2] (0: none)")
-    p.add_argument("--time-limit", type=float, default=None, help="stop after S seconds")
-    p.add_argument("--recycling", choices=RECYCLING, default=RetrievalConfig.recycling,
-                   help="path recycling policy (seed paper Alg. 2)")
-    p.add_argument("--period", type=int, default=RetrievalConfig.period,
+                        f"cross-section [km^2] (default {c.sparsity}: none)")
+    p.add_argument("--time-limit", type=float, help="stop after S seconds")
+    p.add_argument("--recycling", choices=RECYCLING,
+                   help=f"path recycling policy (seed paper Alg. 2; default {c.recycling})")
+    p.add_argument("--period", type=int,
                    help="recycling period N_r (fixed) or maximum period (adaptive); lbfgsb: "
-                        "evaluations per window")
-    p.add_argument("--min-ess", type=float, default=RetrievalConfig.min_ess,
-                   help="adaptive recycling: resample when the ESS fraction falls below this")
-    p.add_argument("--recycling-memory", type=float, default=None, metavar="GIB",
+                        f"evaluations per window (default {c.period})")
+    p.add_argument("--min-ess", type=float,
+                   help="adaptive recycling: resample when the ESS fraction falls below this "
+                        f"(default {c.min_ess})")
+    p.add_argument("--recycling-memory", type=float, metavar="GIB",
                    help="memory for the two path stores [GiB] (default: camera connections "
                         "while a store fits 2 GiB, else voxel crossings); camera connections "
                         "replay fastest")
-    p.add_argument("--fresh-gradient", action="store_true",
+    p.add_argument("--fresh-gradient", action="store_true", default=None,
                    help="with --recycling: recycle only the residual's images and trace the "
                         "gradient's paths fresh every iteration")
-    p.add_argument("--stages", type=int, nargs="+", default=list(RetrievalConfig.stages),
-                   help="coarse-to-fine stages: pixel block sizes, coarse to fine")
-    p.add_argument("--stage-photons", type=float, nargs="+", default=None,
+    p.add_argument("--stages", type=int, nargs="+",
+                   help="coarse-to-fine stages: pixel block sizes, coarse to fine (default "
+                        f"{' '.join(map(str, c.stages))})")
+    p.add_argument("--stage-photons", type=float, nargs="+",
                    help="per stage: photons per iteration as a multiple of --photons (default "
-                        "%(default)s; None: 1 at every stage)")
-    p.add_argument("--voxel-blocks", type=int, nargs="+", default=None,
-                   help="per stage: voxels tied in blocks of this size (default %(default)s; "
-                        "None: 1 at every stage)")
-    p.add_argument("--stage-steps", type=float, nargs="+", default=None,
-                   help="per stage: the step as a multiple of --step (default %(default)s; None: 1 "
-                        "at every stage)")
-    p.add_argument("--gradient-smoothing", type=float, nargs="+", default=None,
+                        "1 at every stage)")
+    p.add_argument("--voxel-blocks", type=int, nargs="+",
+                   help="per stage: voxels tied in blocks of this size (default 1 at every "
+                        "stage)")
+    p.add_argument("--stage-steps", type=float, nargs="+",
+                   help="per stage: the step as a multiple of --step (default 1 at every "
+                        "stage)")
+    p.add_argument("--gradient-smoothing", type=float, nargs="+",
                    help="per stage: Gaussian sigma [voxels] the gradient is smoothed with "
-                        "inside the hull (default %(default)s; None: 1 at every stage, 0 "
-                        "with lbfgsb)")
-    p.add_argument("--image-photons", type=float, nargs="+", default=None,
+                        "inside the hull (default 1 at every stage, 0 with lbfgsb)")
+    p.add_argument("--image-photons", type=float, nargs="+",
                    help="per stage: photons of the residual's images as a multiple of the "
-                        "gradient's (default %(default)s; None: 4 at every stage, 1 with "
-                        "lbfgsb)")
-    p.add_argument("--estimator", nargs="+", choices=ESTIMATORS, default=None,
+                        "gradient's (default 4 at every stage, 1 with lbfgsb)")
+    p.add_argument("--estimator", nargs="+", choices=ESTIMATORS,
                    help="per stage: the gradient estimator, score (path score function, "
                         "forward photons), drt (differential ratio tracking) or sm (sample "
                         "matching), the last two tracing --photons camera paths on this "
-                        "machine (default %(default)s: sm, or score with --workers or "
-                        "--scheduler, a recycled gradient or lbfgsb)")
-    p.add_argument("--pixel-sampling", choices=PIXEL_SAMPLINGS, default=None,
+                        "machine (default sm, or score with --workers or --scheduler, a "
+                        "recycled gradient or lbfgsb)")
+    p.add_argument("--pixel-sampling", choices=PIXEL_SAMPLINGS,
                    help="drt, sm: trace every pixel alike (uniform) or draw pixels in "
                         "proportion to |residual| (residual, the default)")
-    p.add_argument("--averaging", choices=AVERAGING, default=RetrievalConfig.averaging,
+    p.add_argument("--averaging", choices=AVERAGING,
                    help="also keep an average of the iterates, restarted at every stage change "
                         "and step decay: uniform (Polyak-Ruppert) or ema (exponential moving "
                         "average); the result holds it as cloud_extinction_average and the log "
-                        "its epsilon and delta")
-    p.add_argument("--averaging-decay", type=float, default=RetrievalConfig.averaging_decay,
-                   help="--averaging ema: weight of the average so far at each iterate")
-    p.add_argument("--saturation-window", type=int, default=RetrievalConfig.saturation_window,
-                   help="iterations over which the loss must keep falling to stay in a stage")
-    p.add_argument("--step-decay", type=float, default=RetrievalConfig.step_decay,
-                   help="last stage: multiply the step by this when the loss saturates")
+                        f"its epsilon and delta (default {c.averaging})")
+    p.add_argument("--averaging-decay", type=float,
+                   help="--averaging ema: weight of the average so far at each iterate "
+                        f"(default {c.averaging_decay})")
+    p.add_argument("--saturation-window", type=int,
+                   help="iterations over which the loss must keep falling to stay in a stage "
+                        f"(default {c.saturation_window})")
+    p.add_argument("--step-decay", type=float,
+                   help="last stage: multiply the step by this when the loss saturates "
+                        f"(default {c.step_decay})")
+
+
+def add_config_options(p: argparse.ArgumentParser) -> None:
+    """``--config FILE`` and ``--write-config`` (docs/retrieval_config.md)."""
+    p.add_argument("--config", metavar="FILE",
+                   help="the run's settings from a TOML file (cloudct retrieve --write-config "
+                        "writes one; a result or checkpoint netCDF gives its run's); options "
+                        "given on the command line override it")
+    p.add_argument("--write-config", action="store_true",
+                   help="print the run's settings (the defaults, with --config and the "
+                        "options given) as a commented TOML file and exit")
 
 
 def register_cli(subparsers: argparse._SubParsersAction) -> None:
     """Add ``retrieve``, ``report`` and ``demo``."""
     r = subparsers.add_parser(
         "retrieve", help="retrieve a cloud's 3D extinction from multi-view measurements",
-        description="Retrieve the cloud extinction from a measurement netCDF (cloudct synth).",
+        description="Retrieve the cloud extinction from a measurement netCDF (cloudct synth). "
+        "The run's settings come from the options, a --config file (options given override "
+        "it) and the defaults, in that order.",
     )
-    r.add_argument("measurements", help="measurement netCDF")
+    r.add_argument("measurements", nargs="?", help="measurement netCDF")
     r.add_argument("--init", default="carve", help="'carve' or an initial medium netCDF")
     r.add_argument("--medium", help="template medium for the grid and air (with --init carve)")
     r.add_argument("--truth", help="true medium netCDF: epsilon and delta are logged")
     r.add_argument("-o", "--output", default="result.nc")
     r.add_argument("--checkpoint", help="checkpoint file (default: OUTPUT.checkpoint.nc)")
-    r.add_argument("--checkpoint-every", type=int, default=20)
-    r.add_argument("--resume", action="store_true", help="continue from the checkpoint")
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--checkpoint-every", type=int,
+                   help=f"iterations between checkpoints (default "
+                        f"{RetrievalConfig.checkpoint_every})")
+    r.add_argument("--resume", action="store_true",
+                   help="continue from the checkpoint with its settings (--iterations and "
+                        "--time-limit may change them; other settings given must equal them)")
+    r.add_argument("--seed", type=int, help=f"default {RetrievalConfig.seed}")
     r.add_argument("--overwrite", action="store_true")
+    add_config_options(r)
     add_run_options(r, iterations=300, photons=100_000)
     add_distributed_options(r)
     r.set_defaults(func=_cli_retrieve)
@@ -237,15 +375,17 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     d = subparsers.add_parser(
         "demo", help="the whole chain on the bundled single cloud (a few minutes)",
         description="Synthesise measurements of the bundled single cloud, carve, retrieve and "
-        "report. The run's settings are those of the best measured single-cloud retrieval: "
-        "cloudct retrieve's defaults (one stage at 2x2 pixel blocks, gradient smoothed over "
-        "1 voxel, 4x photons for the residual's images, step 1 /km halved when the loss "
-        "saturates, the gradient by sample matching from residual-drawn pixels) with the L1 "
-        "prior --sparsity 0.01, and 60 iterations of 50,000 gradient paths.",
+        "report. The run's settings are the bundled cloudct/data/demo.toml (cloudct demo "
+        "--write-config prints them): cloudct retrieve's defaults, those of the best measured "
+        "single-cloud retrieval (one stage at 2x2 pixel blocks, gradient smoothed over 1 "
+        "voxel, 4x photons for the residual's images, step 1 /km halved when the loss "
+        "saturates, the gradient by sample matching from residual-drawn pixels), with the L1 "
+        "prior sparsity = 0.01 and 60 iterations of 50,000 gradient paths.",
     )
     d.add_argument("-o", "--output", default="cloudct_demo", help="output directory")
     d.add_argument("--overwrite", action="store_true",
                    help="replace the results of an earlier demo in the output directory")
     d.add_argument("--measurement-photons", type=int, default=10_000_000)
-    add_run_options(d, iterations=60, photons=50_000)
-    d.set_defaults(func=_cli_demo, sparsity=0.01)  # measured on this cloud (benchmarks.md)
+    add_config_options(d)
+    add_run_options(d)
+    d.set_defaults(func=_cli_demo, defaults_file=DEMO_CONFIG)

@@ -6,7 +6,8 @@ seeded by (seed, t) — so that a resumed run repeats exactly what an uninterrup
 and takes one projected optimiser step (non-negative extinction, zero outside the carved
 mask). The coarse-to-fine schedule starts from images averaged over blocks of pixels
 (exactly the box-filtered radiance of a coarser camera) and fewer photons, and moves to the
-next stage when the loss stops decreasing.
+next stage when the loss stops decreasing. The run's settings, :class:`RetrievalConfig`, and
+their TOML file are :mod:`cloudct.retrieval.config`'s (imported here too).
 """
 
 from __future__ import annotations
@@ -24,11 +25,19 @@ from tqdm.auto import tqdm
 
 from cloudct.distributed.executor import executor
 from cloudct.mc.cameras import Camera
-from cloudct.mc.gradient import ESTIMATORS, gradient_estimate
-from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS
+from cloudct.mc.gradient import gradient_estimate
 from cloudct.mc.scene import Scene
 from cloudct.medium import cell_edges, validate_medium
 from cloudct.netcdf import InputFileError, load_netcdf, require_variables
+from cloudct.retrieval.config import (  # noqa: F401 (the settings, imported from here too)
+    AVERAGING,
+    OPTIMIZERS,
+    RECYCLING,
+    RetrievalConfig,
+    check_resume,
+    config_from_json,
+    config_to_toml,
+)
 from cloudct.retrieval.loss import image_loss, loss_and_gradient, pixel_weights
 from cloudct.retrieval.metrics import epsilon_delta
 from cloudct.retrieval.optimizers import (
@@ -39,180 +48,8 @@ from cloudct.retrieval.optimizers import (
 )
 from cloudct.retrieval.sample_average import lbfgsb_window
 
-RECYCLING = ("none", "fixed", "adaptive")
-OPTIMIZERS = ("adam", "sgd", "lbfgsb")
-# per-stage settings that may be given as None: (field, type, value at every stage with Adam
-# or SGD, with L-BFGS-B); the first-order values are those of the best measured run on the
-# single cloud (docs/benchmarks.md)
-PER_STAGE_DEFAULTS = (
-    ("stage_photons", float, 1.0, 1.0), ("voxel_blocks", int, 1, 1),
-    ("stage_steps", float, 1.0, 1.0),
-    ("gradient_smoothing", float, 1.0, 0.0), ("image_photons", float, 4.0, 1.0),
-)
 LOG_FIELDS = ("loss", "epsilon", "delta", "seconds", "photons", "stage", "resampled", "ess",
               "gradient_seconds", "epsilon_average", "delta_average")
-AVERAGING = ("none", "uniform", "ema")
-
-
-@dataclass
-class RetrievalConfig:
-    """Settings of a retrieval run (all stored in checkpoints and results).
-
-    The defaults are those of the best measured run on the seed paper's single cloud from
-    the soft-carved start (docs/benchmarks.md): one stage at 2 x 2 pixel blocks, the
-    gradient smoothed over 1 voxel, 4x photons for the residual's images, Adam with a step
-    of 1 /km halved whenever the loss saturates, and the gradient by sample matching from
-    pixels drawn in proportion to |residual| (``estimator``, ``pixel_sampling``: 100-400
-    times the score function's precision per second near the plateau, docs/benchmarks.md;
-    the score function where stored paths are replayed, which only it can). The seed
-    paper's step of 2 /km with
-    coarse-to-fine stages 4, 2, 1 walks away from that start. The L1 prior (``sparsity``,
-    :meth:`Retrieval.l1_gradient`) is off by default: it changes what is estimated, and its
-    weight was measured on that cloud (0.01 /km^2 lowered epsilon there) and checked on one
-    more (benchmarks/scenes.py two_cumuli: the same gain).
-
-    ``optimizer="lbfgsb"`` makes every iteration a window of L-BFGS-B on the sample-average
-    loss of fixed paths (:mod:`cloudct.retrieval.sample_average`): up to ``period``
-    evaluations within a trust region of ``trust_region`` (x the stage's step multiple and
-    the step decay) relative to each voxel's extinction; ``step`` does not apply, and the
-    gradient preconditioners (voxel blocks, smoothing) and the recycling policies are
-    refused.
-    """
-
-    iterations: int = 300
-    photons: int = 100_000  # gradient's per iteration at the finest stage (see image_photons)
-    optimizer: str = "adam"  # "adam", "sgd" or "lbfgsb"
-    step: float = 1.0  # 1/km per iteration for Adam
-    seed: int = 0
-    stages: tuple[int, ...] = (2,)  # pixel block sizes, coarse to fine
-    stage_photons: tuple[float, ...] | None = None  # per stage: photon fraction (None: 1)
-    voxel_blocks: tuple[int, ...] | None = None  # per stage: voxels tied in blocks (None: 1)
-    stage_steps: tuple[float, ...] | None = None  # per stage: step as a multiple of `step`
-    gradient_smoothing: tuple[float, ...] | None = None  # per stage: Gaussian sigma, voxels
-    # (None: 1; 0 with lbfgsb)
-    image_photons: tuple[float, ...] | None = None  # per stage: residual images' photons as a
-    # multiple of the gradient's (None: 4; 1 with lbfgsb)
-    saturation_window: int = 10  # iterations over which the loss must keep decreasing
-    saturation_tolerance: float = 0.02  # relative decrease below which the loss saturates
-    step_decay: float = 0.5  # last stage: step x this whenever the loss saturates (1: never)
-    checkpoint_every: int = 20
-    time_limit: float | None = None  # seconds; stop after this much wall time
-    recycling: str = "none"  # "none", "fixed" (every `period` iterations) or "adaptive" (ESS)
-    period: int = 30  # fixed period N_r, the adaptive policy's maximum period, or lbfgsb's
-    # evaluations per window
-    min_ess: float = 0.5  # adaptive: resample when ESS / paths falls below this
-    recycling_memory: float | None = None  # GiB for the two path stores of the recycling
-    # or of an lbfgsb window (None: camera connections while a store fits 2 GiB)
-    recycle_gradient: bool = True  # False: recycle only the residual's images and trace the
-    # gradient's paths fresh every iteration (Retrieval._recycled_loss_and_gradient)
-    trust_region: float = 0.3  # lbfgsb: relative change of a voxel's extinction per window
-    sparsity: float = 0.0  # 1/km^2: weight of the L1 prior (Retrieval.l1_gradient)
-    estimator: tuple[str, ...] | None = None  # per stage: gradient estimator, one of
-    # cloudct.mc.gradient.ESTIMATORS (None: "sm", or "score" where the gradient is replayed)
-    pixel_sampling: str | None = None  # camera-side estimators: pixels "uniform" or
-    # drawn in proportion to |residual| (cloudct.mc.pixel_sampling; None: "residual")
-    averaging: str = "none"  # iterate average (Retrieval.average): "none", "uniform"
-    # (Polyak-Ruppert) or "ema" (exponential moving average), restarted at every stage
-    # change and step decay
-    averaging_decay: float = 0.9  # "ema": weight of the average so far at each iterate
-
-    def __post_init__(self) -> None:
-        if self.optimizer not in OPTIMIZERS:
-            raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
-        self.stages = tuple(int(s) for s in self.stages)
-        quasi_newton = self.optimizer == "lbfgsb"
-        for name, kind, first_order, lbfgsb in PER_STAGE_DEFAULTS:  # None: the default
-            default = lbfgsb if quasi_newton else first_order
-            values = getattr(self, name)
-            values = (default,) * len(self.stages) if values is None else values
-            setattr(self, name, tuple(kind(v) for v in values))
-        if self.estimator is None:  # the best measured, where stored paths are not replayed
-            replayed = quasi_newton or (self.recycling != "none" and self.recycle_gradient)
-            self.estimator = ("score" if replayed else "sm",) * len(self.stages)
-        self.estimator = tuple(str(name) for name in self.estimator)
-        camera_side = any(name != "score" for name in self.estimator)
-        if self.pixel_sampling is None:
-            self.pixel_sampling = "residual" if camera_side else "uniform"
-        per_stage = (self.stage_photons, self.voxel_blocks, self.stage_steps,
-                     self.gradient_smoothing, self.image_photons, self.estimator)
-        if not self.stages or any(len(v) != len(self.stages) for v in per_stage):
-            raise ValueError(
-                "stages, stage_photons, voxel_blocks, stage_steps, gradient_smoothing, "
-                "image_photons and estimator must have the same, non-zero length"
-            )
-        if any(name not in ESTIMATORS for name in self.estimator):
-            raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator}")
-        if self.pixel_sampling not in PIXEL_SAMPLINGS:
-            raise ValueError(
-                f"pixel_sampling must be one of {PIXEL_SAMPLINGS}, got {self.pixel_sampling!r}"
-            )
-        if self.pixel_sampling != "uniform" and not camera_side:
-            raise ValueError("pixel_sampling applies to the camera-side estimators (drt, sm); "
-                             "every stage uses the score function")
-        if camera_side and (quasi_newton or (self.recycling != "none"
-                                             and self.recycle_gradient)):
-            raise ValueError(
-                "recycled gradients (a recycling policy without recycle_gradient=False) and "
-                "optimizer 'lbfgsb' replay stored forward paths: they need the estimator "
-                "'score' at every stage"
-            )
-        if min(self.gradient_smoothing) < 0.0:
-            raise ValueError(f"gradient_smoothing must be >= 0, got {self.gradient_smoothing}")
-        if min(self.stage_steps) <= 0.0:
-            raise ValueError(f"stage_steps must be > 0, got {self.stage_steps}")
-        if not 0.0 < self.step_decay <= 1.0:
-            raise ValueError(f"step_decay must be in (0, 1], got {self.step_decay}")
-        if min(self.voxel_blocks) < 1:
-            raise ValueError(f"voxel_blocks must be >= 1, got {self.voxel_blocks}")
-        if self.iterations < 0 or self.photons < 1 or self.checkpoint_every < 1:
-            raise ValueError("iterations >= 0, photons >= 1 and checkpoint_every >= 1 needed")
-        if min(self.image_photons) <= 0.0:
-            raise ValueError(f"image_photons must be > 0, got {self.image_photons}")
-        if self.recycling not in RECYCLING:
-            raise ValueError(f"recycling must be one of {RECYCLING}, got {self.recycling!r}")
-        if not 0.0 < self.trust_region <= 1.0:
-            raise ValueError(f"trust_region must be in (0, 1], got {self.trust_region}")
-        if not self.recycle_gradient and self.recycling == "none":
-            raise ValueError("recycle_gradient=False needs a recycling policy (it recycles "
-                             "the residual's images only)")
-        if self.recycling_memory is not None and not self.recycling_memory > 0.0:
-            raise ValueError(
-                f"recycling_memory must be a positive number of GiB, got {self.recycling_memory}"
-            )
-        if self.sparsity < 0.0:
-            raise ValueError(f"sparsity must be >= 0, got {self.sparsity}")
-        if self.averaging not in AVERAGING:
-            raise ValueError(f"averaging must be one of {AVERAGING}, got {self.averaging!r}")
-        if not 0.0 < self.averaging_decay < 1.0:
-            raise ValueError(f"averaging_decay must be in (0, 1), got {self.averaging_decay}")
-        if quasi_newton and (
-            self.recycling != "none" or max(self.voxel_blocks) > 1
-            or max(self.gradient_smoothing) > 0.0 or self.sparsity > 0.0
-        ):
-            raise ValueError(
-                "optimizer 'lbfgsb' recycles its own paths (period evaluations per window) "
-                "and minimises the sample-average loss alone: leave recycling at 'none', "
-                "voxel_blocks at 1, gradient_smoothing at 0 and sparsity at 0"
-            )
-
-    def photons_at(self, stage: int) -> tuple[int, int]:
-        """Photons of an iteration at ``stage``: (images of the residual, gradient)."""
-        gradient = max(int(self.photons * self.stage_photons[stage]), 1)
-        return max(int(round(gradient * self.image_photons[stage])), 1), gradient
-
-    def recycling_bytes(self) -> float | None:
-        """The path stores' memory budget in bytes (None: the recycler's default)."""
-        return None if self.recycling_memory is None else self.recycling_memory * 2**30
-
-    def policy(self):
-        """The recycling policy of these settings (None without recycling)."""
-        from cloudct.recycling.policy import AdaptiveESS, FixedPeriod
-
-        if self.recycling == "fixed":
-            return FixedPeriod(self.period)
-        if self.recycling == "adaptive":
-            return AdaptiveESS(min_fraction=self.min_ess, max_period=self.period)
-        return None
 
 
 def coarse_measurements(measurements: xr.Dataset, block: int) -> xr.Dataset:
@@ -617,6 +454,8 @@ class Retrieval:
             )
         ds.attrs.update(
             title="cloudct retrieval", run_id=self.id, config=json.dumps(asdict(self.config)),
+            config_toml=config_to_toml(self.config, header="cloudct retrieve --config FILE "
+                                       "re-runs this retrieval (docs/retrieval_config.md)"),
             iterations_done=s.iteration, stage=s.stage, elapsed_s=s.elapsed,
             step_scale=s.step_scale, decayed_at=s.decayed_at, average_weight=s.average_weight,
         )
@@ -644,25 +483,28 @@ class Retrieval:
         *,
         truth: xr.Dataset | None = None,
         iterations: int | None = None,
+        settings: dict | None = None,
         backend: str = "cpu",
         client=None,
     ) -> Retrieval:
         """Continue the run stored in checkpoint ``path``; it must belong to these
         measurements and settings (same run id). Without recycling the resumed run repeats
         exactly what the uninterrupted run does; with recycling the path stores are not in
-        the checkpoint, so the resumed run first records new paths under the current medium."""
+        the checkpoint, so the resumed run first records new paths under the current medium.
+
+        ``settings`` (:class:`RetrievalConfig` fields) are those asked of the resumed run:
+        ``iterations`` and ``time_limit`` replace the checkpoint's, and any other that
+        differs from the checkpoint's raises
+        :class:`~cloudct.retrieval.config.ResumeConflict` (a ValueError)."""
         ck = load_netcdf(path, "checkpoint")
         require_variables(ck, ("cloud_mask",), "checkpoint", path)
         if not {"config", "run_id"} <= set(ck.attrs):
             raise InputFileError(f"checkpoint file {path} lacks its run's settings (attributes "
                                  "config and run_id); is it a cloudct checkpoint?")
-        config_dict = json.loads(ck.attrs["config"])
-        # checkpoints from before the estimator choice traced the score function
-        config_dict.setdefault("estimator", ("score",) * len(config_dict["stages"]))
-        config_dict.setdefault("pixel_sampling", "uniform")
+        asked = dict(settings or {})
         if iterations is not None:
-            config_dict["iterations"] = iterations
-        config = RetrievalConfig(**config_dict)
+            asked["iterations"] = iterations
+        config = check_resume(config_from_json(ck.attrs["config"]), asked)
         run = cls(measurements, initial, config, mask=ck["cloud_mask"].values.astype(bool),
                   truth=truth, backend=backend, client=client)
         if ck.attrs["run_id"] != run.id:

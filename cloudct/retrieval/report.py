@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
+from cloudct.retrieval.config import config_from_json, config_to_toml
 from cloudct.retrieval.metrics import epsilon_delta, epsilon_split
 
 
@@ -41,7 +42,7 @@ def write_report(
         f"- iterations: {result.attrs.get('iterations_done', '?')}, wall time "
         f"{float(result.attrs.get('elapsed_s', np.nan)):.0f} s, final stage "
         f"{result.attrs.get('stage', '?')}",
-        f"- settings: `{json.dumps(config)}`",
+        "- settings: [the run's configuration](#configuration) below",
     ]
     if "log_gradient_seconds" in result:
         stages = result["log_stage"].values.astype(int)
@@ -123,9 +124,23 @@ def write_report(
                   f"Relative L1 image difference: {rel:.1%} (re-rendered with {render_photons} "
                   "photons; their Monte Carlo noise is part of it).", "",
                   "![images](images.png)", ""]
+    lines += ["## Configuration", "",
+              "The run's settings (`cloudct retrieve --config` of this text, or of the result "
+              "file, re-runs it; docs/retrieval_config.md):", "",
+              "```toml", stored_config(result).rstrip("\n"), "```", ""]
     summary = out / "summary.md"
     summary.write_text("\n".join(lines))
     return summary
+
+
+def stored_config(result: xr.Dataset) -> str:
+    """The TOML text of a result's configuration (attribute ``config_toml``; results from
+    before it: converted from the JSON attribute ``config``)."""
+    if "config_toml" in result.attrs:
+        return str(result.attrs["config_toml"])
+    if "config" in result.attrs:
+        return config_to_toml(config_from_json(result.attrs["config"]))
+    return "# (the result holds no configuration)\n"
 
 
 def _slices(plt, truth: np.ndarray, beta: np.ndarray, z: np.ndarray, path: Path) -> None:
