@@ -298,6 +298,11 @@ def test_every_output_file_names_its_optics(tmp_path):
     assert cloudct.cli.main(["carve", str(synth), "--medium", str(medium), "--k", "8",
                              "--extinction", "10", "-o", str(carved)]) == 0
     assert load_medium(carved).attrs["optics"] == "mie"
+    result = tmp_path / "result.nc"
+    assert cloudct.cli.main(["retrieve", str(synth), "--medium", str(medium), "--iterations",
+                             "1", "--photons", "2000", "-o", str(result)]) == 0
+    attrs = xr.load_dataset(result).attrs
+    assert attrs["optics"] == attrs["measurement_optics"] == "mie"
     optical = tmp_path / "optical.nc"
     single_cloud_medium("hg").to_netcdf(optical)
     assert cloudct.cli.main(["render", str(optical), "--optics", "mie", "--photons", "100",

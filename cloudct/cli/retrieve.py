@@ -10,11 +10,15 @@ from typing import Any
 
 import xarray as xr
 
-from cloudct.cli.options import add_distributed_options
+from cloudct.cli.options import (
+    add_distributed_options,
+    add_optics_option,
+    measured_optics,
+    medium_from_options,
+)
 from cloudct.distributed import close_client, connect
 from cloudct.mc.gradient import ESTIMATORS
 from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS
-from cloudct.mc.render import single_cloud_medium
 from cloudct.measurements import load_measurements, save_measurements, synthesize_measurements
 from cloudct.medium import load_medium, save_medium
 from cloudct.netcdf import load_netcdf, require_variables
@@ -42,14 +46,14 @@ def _refuse_overwrite(path: Path, overwrite: bool) -> None:
         raise FileExistsError(f"{path} exists (use --overwrite)")
 
 
-def _initial_medium(measurements: xr.Dataset, init: str, template: str | None) -> xr.Dataset:
-    """The starting medium: space carving of the measurements, or a medium file."""
+def _initial_medium(
+    measurements: xr.Dataset, init: str, template: str | None, optics: str | None
+) -> xr.Dataset:
+    """The starting medium: space carving of the measurements on the template's grid (with
+    the measurements' optics unless ``optics`` is given), or a medium file."""
     if init != "carve":
         return load_medium(init)
-    from cloudct.mc.render import single_cloud_medium
-    from cloudct.retrieval.carving import carve, initial_medium
-
-    grid = single_cloud_medium() if template is None else load_medium(template)
+    grid = medium_from_options(template, measured_optics(measurements, optics))
     return initial_medium(carve(measurements, grid), grid)
 
 
@@ -168,7 +172,7 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
         config_from_settings(settings)
     measurements = load_measurements(args.measurements)
     truth = load_medium(args.truth) if args.truth else None
-    initial = _initial_medium(measurements, args.init, args.medium)
+    initial = _initial_medium(measurements, args.init, args.medium, args.optics)
     checkpoint = Path(args.checkpoint or output.with_suffix(".checkpoint.nc"))
     if not args.resume:
         _refuse_overwrite(checkpoint, args.overwrite)
@@ -220,7 +224,7 @@ def _cli_demo(args: argparse.Namespace) -> int:
     _refuse_overwrite(out / "result.nc", args.overwrite)
     out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    truth = single_cloud_medium()
+    truth = medium_from_options(None, args.optics)
     print(f"1/4 synthesising measurements ({args.measurement_photons} photons) ...")
     measurements = synthesize_measurements(truth, photons=args.measurement_photons, seed=1)
     save_measurements(measurements, out / "measurements.nc", overwrite=True)
@@ -362,6 +366,8 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument("--overwrite", action="store_true")
     add_config_options(r)
     add_run_options(r, iterations=300, photons=100_000)
+    add_optics_option(r, "With --init carve, the cloud optics of the template (default: the "
+                      "measurements' recorded optics, else 'hg')")
     add_distributed_options(r)
     r.set_defaults(func=_cli_retrieve)
 
@@ -386,6 +392,7 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     d.add_argument("--overwrite", action="store_true",
                    help="replace the results of an earlier demo in the output directory")
     d.add_argument("--measurement-photons", type=int, default=10_000_000)
+    add_optics_option(d, "Default: 'hg'")
     add_config_options(d)
     add_run_options(d)
     d.set_defaults(func=_cli_demo, defaults_file=DEMO_CONFIG)

@@ -29,6 +29,7 @@ from cloudct.mc.gradient import gradient_estimate
 from cloudct.mc.scene import Scene
 from cloudct.medium import cell_edges, validate_medium
 from cloudct.netcdf import InputFileError, load_netcdf, require_variables
+from cloudct.optics import optics_name
 from cloudct.retrieval.config import (  # noqa: F401 (the settings, imported from here too)
     AVERAGING,
     OPTIMIZERS,
@@ -458,6 +459,8 @@ class Retrieval:
                                        "re-runs this retrieval (docs/retrieval_config.md)"),
             iterations_done=s.iteration, stage=s.stage, elapsed_s=s.elapsed,
             step_scale=s.step_scale, decayed_at=s.decayed_at, average_weight=s.average_weight,
+            optics=optics_name(self.template),
+            measurement_optics=str(self.measurements.attrs.get("optics", "unrecorded")),
         )
         return ds
 
