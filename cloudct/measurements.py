@@ -50,6 +50,7 @@ from cloudct.medium import cell_edges, validate_medium
 from cloudct.netcdf import load_netcdf
 from cloudct.optics import to_optical
 from cloudct.physics.mie import DEFAULT_WAVELENGTH
+from cloudct.units import units_problem
 
 #: Default number of photons of a synthetic measurement (forward estimator).
 DEFAULT_PHOTONS = 10_000_000
@@ -58,6 +59,9 @@ WHITE_PLATE_RADIANCE = 1.0 / math.pi
 
 _IMAGE_DIMS = ("view", "row", "col")
 _SCENE_ATTRS = ("sun_zenith", "sun_azimuth", "boundary")
+#: The units of the variables that carry them (docs/measurements.md).
+_UNITS = {"radiance": "1", "radiance_noise_std": "1", "radiance_std_error": "1",
+          "position": "km", "lookat": "km", "fov": "degree"}
 
 
 class MeasurementError(ValueError):
@@ -253,6 +257,11 @@ def validate_measurements(ds: xr.Dataset) -> None:
     missing = [a for a in _SCENE_ATTRS if a not in ds.attrs]
     if missing:
         raise MeasurementError(f"scene attributes missing: {', '.join(missing)}")
+    for name, unit in _UNITS.items():
+        problem = units_problem(name, ds[name].attrs["units"], unit) if (
+            name in ds and "units" in ds[name].attrs) else None
+        if problem is not None:
+            raise MeasurementError(problem)
     try:
         cameras = cameras_from_dataset(ds)
         Scene.from_dataset(ds)

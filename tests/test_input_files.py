@@ -72,3 +72,41 @@ def test_missing_input_is_one_line(files, tmp_path, capsys):
     missing = str(tmp_path / "nowhere.nc")
     err = run(["render", missing, "-o", str(tmp_path / "images.nc")], capsys)
     assert missing in err and "does not exist" in err
+
+
+# ---------------------------------------------------------------------------------------
+# Convertible units are refused with the conversion to make (cloudct.units)
+# ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("variable, units, factor", [
+    ("lwc", "kg m-3", "1000"),  # the test only relabels the values: the message is checked
+    ("reff", "m", "1e+06"),
+    ("x", "m", "0.001"),
+    ("air_extinction", "1/m", "1000"),
+])
+def test_a_medium_in_other_units_is_refused_with_the_conversion(tmp_path, capsys, variable,
+                                                                units, factor):
+    medium = single_cloud_medium()
+    medium[variable].attrs["units"] = units
+    path = tmp_path / "medium.nc"
+    medium.to_netcdf(path)
+    err = run(["render", str(path), "-o", str(tmp_path / "images.nc")], capsys)
+    assert str(path) in err and f"multiply {variable} by {factor} " in err, err
+
+
+def test_a_measurement_file_in_metres_is_refused_with_the_conversion(files, tmp_path, capsys):
+    measurements = tmp_path / "measurements.nc"
+    assert main(["synth", str(files["medium"]), "--photons", "2000", "-o",
+                 str(measurements)]) == 0
+    ds = xr.load_dataset(measurements)
+    ds["position"] = ds["position"] * 1000.0
+    ds["position"].attrs["units"] = "m"
+    ds.to_netcdf(tmp_path / "in_metres.nc")
+    err = run(["carve", str(tmp_path / "in_metres.nc"), "-o", str(tmp_path / "init.nc")], capsys)
+    assert "position has units 'm'" in err and "multiply position by 0.001" in err, err
+    ds["position"].attrs["units"] = "furlong"
+    ds.to_netcdf(tmp_path / "in_furlongs.nc")
+    err = run(["carve", str(tmp_path / "in_furlongs.nc"), "-o", str(tmp_path / "init.nc")],
+              capsys)
+    assert "position has units 'furlong'; expected 'km'" in err, err

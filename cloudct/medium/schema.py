@@ -1,6 +1,6 @@
 """The medium schema: the variables and coordinates a medium Dataset may hold (their
-dimensions, units and long names), the unit spellings accepted, the defaults, and the
-error raised for a Dataset or constructor input that does not follow the schema.
+dimensions, units, spelled as :mod:`cloudct.units` accepts, and long names), the defaults,
+and the error raised for a Dataset or constructor input that does not follow the schema.
 """
 
 from __future__ import annotations
@@ -72,17 +72,6 @@ _EXTRA_COORD_ATTRS = {
     "x": {"axis": "X"},
     "y": {"axis": "Y"},
     "z": {"axis": "Z", "positive": "up"},
-}
-
-#: Spellings accepted in a ``units`` attribute, per canonical unit.
-_UNIT_SPELLINGS = {
-    "km": {"km", "kilometer", "kilometre", "kilometers", "kilometres"},
-    "km-1": {"km-1", "1/km", "/km", "km^-1", "km**-1"},
-    "g m-3": {"g m-3", "g/m3", "g/m^3", "g m^-3", "g m**-3", "g.m-3"},
-    "micron": {"micron", "microns", "um", "µm", "micrometer", "micrometre", "micrometers"},
-    "1": {"1", "", "dimensionless"},
-    "sr-1": {"sr-1", "1/sr", "/sr", "sr^-1", "sr**-1"},
-    "degree": {"degree", "degrees", "deg"},
 }
 
 _MICROPHYSICAL = ("lwc", "reff", "veff")

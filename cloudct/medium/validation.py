@@ -13,12 +13,12 @@ from cloudct.medium.schema import (
     _COORDINATES,
     _MICROPHYSICAL,
     _OPTICAL,
-    _UNIT_SPELLINGS,
     _VARIABLES,
     GRID_DIMS,
     SPACING_RTOL,
     MediumError,
 )
+from cloudct.units import units_problem
 
 
 def validate_medium(ds: xr.Dataset) -> None:
@@ -190,9 +190,9 @@ def _check_form(ds: xr.Dataset, name: str) -> None:
     elif kind not in "iuf":
         raise MediumError(f"{name} must be a real number array, has dtype {array.dtype}")
     if "units" in array.attrs:
-        units = array.attrs["units"]
-        if not isinstance(units, str) or units.strip().lower() not in _UNIT_SPELLINGS[spec.units]:
-            raise MediumError(f"{name} has units {units!r}; expected {spec.units!r}")
+        problem = units_problem(name, array.attrs["units"], spec.units)
+        if problem is not None:
+            raise MediumError(problem)
     bad = ~np.isfinite(array.values)
     if np.any(bad):
         raise MediumError(
