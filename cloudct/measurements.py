@@ -38,7 +38,6 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import xarray as xr
@@ -47,7 +46,7 @@ from cloudct.mc.cameras import cameras_from_dataset
 from cloudct.mc.render import RADIANCE_UNITS, render
 from cloudct.mc.scene import Scene, single_cloud_scene
 from cloudct.medium import cell_edges, validate_medium
-from cloudct.netcdf import load_netcdf
+from cloudct.netcdf import load_netcdf, save_netcdf
 from cloudct.optics import to_optical
 from cloudct.physics.mie import DEFAULT_WAVELENGTH
 from cloudct.units import units_problem
@@ -294,15 +293,7 @@ def save_measurements(ds: xr.Dataset, path: str | os.PathLike, overwrite: bool =
         MeasurementError: ``ds`` is not a valid measurement set.
     """
     validate_measurements(ds)
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} exists; pass overwrite=True (--overwrite) to replace it")
-    partial = path.with_name(f".{path.name}.partial")
-    try:
-        ds.to_netcdf(partial, engine="netcdf4", format="NETCDF4")
-        os.replace(partial, path)
-    finally:
-        partial.unlink(missing_ok=True)
+    save_netcdf(ds, path, overwrite=overwrite)
 
 
 def load_measurements(path: str | os.PathLike) -> xr.Dataset:

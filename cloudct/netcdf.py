@@ -1,13 +1,17 @@
-"""Reading netCDF input files with one clear line when a file cannot be read.
+"""netCDF files in and out: inputs read with one clear line when a file cannot be read, and
+outputs written whole or not at all.
 
 Every command reads its inputs (media, scenes, measurements, results, checkpoints) through
 :func:`load_netcdf`, so that a missing, truncated, empty or non-netCDF file ends in one
 line naming the file and what is wrong, not in a traceback from the HDF5 library.
+:func:`save_netcdf` writes next to the destination and moves the file into place, so a
+failed write never leaves a half-written file.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import xarray as xr
@@ -55,3 +59,30 @@ def require_variables(ds: xr.Dataset, names: list[str] | tuple[str, ...], what: 
         raise InputFileError(
             f"{what} file {path} lacks {', '.join(missing)}; is it a cloudct {what} file?"
         )
+
+
+def save_netcdf(
+    ds: xr.Dataset,
+    path: str | os.PathLike,
+    *,
+    overwrite: bool = False,
+    encoding: dict | None = None,
+    finish: Callable[[Path], None] | None = None,
+) -> None:
+    """Write ``ds`` to a netCDF-4 file at ``path`` atomically; ``finish(partial)`` may amend
+    the written file before it is moved into place.
+
+    Raises:
+        FileExistsError: ``path`` exists and ``overwrite`` is False.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists; pass overwrite=True (--overwrite) to replace it")
+    partial = path.with_name(f".{path.name}.partial")
+    try:
+        ds.to_netcdf(partial, engine="netcdf4", format="NETCDF4", encoding=encoding)
+        if finish is not None:
+            finish(partial)
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)

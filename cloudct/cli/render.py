@@ -9,10 +9,11 @@ import numpy as np
 
 from cloudct.cli.options import add_distributed_options, add_optics_option, medium_from_options
 from cloudct.distributed import close_client, connect, executor
-from cloudct.mc.render import METHODS, render, save_images, save_previews, single_cloud_medium
+from cloudct.mc.render import METHODS, render, save_images, save_previews
 from cloudct.mc.scene import BOUNDARIES, PRESETS, build_scene, load_scene, single_cloud_scene
 from cloudct.mc.scene_figure import save_scene_figure
-from cloudct.medium import cell_edges, load_medium
+from cloudct.medium import cell_edges
+from cloudct.netcdf import save_netcdf
 
 
 def _cli_render(args: argparse.Namespace) -> int:
@@ -61,8 +62,7 @@ def _cli_render(args: argparse.Namespace) -> int:
 
 def _cli_scene(args: argparse.Namespace) -> int:
     """``cloudct scene``: write a nine-camera scene for a medium (preset and overrides)."""
-    medium = single_cloud_medium() if args.medium is None else load_medium(args.medium)
-    edges = cell_edges(medium)
+    edges = cell_edges(medium_from_options(args.medium, None))
     scene = build_scene(
         np.array([e[0] for e in edges]), np.array([e[-1] for e in edges]),
         preset=args.preset, ring_zenith=args.ring_zenith, distance=args.distance,
@@ -73,9 +73,7 @@ def _cli_scene(args: argparse.Namespace) -> int:
         ground_albedo=args.ground_albedo,
     )
     output = Path(args.output)
-    if output.exists() and not args.overwrite:
-        raise FileExistsError(f"{output} exists (use --overwrite)")
-    scene.to_dataset().to_netcdf(output)
+    save_netcdf(scene.to_dataset(), output, overwrite=args.overwrite)
     written = f"wrote {output} ({len(scene.cameras)} cameras)"
     if args.figure:
         figure = save_scene_figure(scene, [e[0] for e in edges], [e[-1] for e in edges],

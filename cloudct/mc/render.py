@@ -36,6 +36,7 @@ from cloudct.mc.scene import (
 )
 from cloudct.mc.sun import SunArrays, sun_arrays
 from cloudct.medium import cell_edges, is_optical, validate_medium
+from cloudct.netcdf import save_netcdf
 from cloudct.optics import DEFAULT_OPTICS, kernel_arrays, optics_name, to_optical
 from cloudct.physics.mixing import OpticalGrid
 from cloudct.physics.phase import TABULATED, PhaseBank
@@ -272,10 +273,7 @@ def images_dataset(
 
 def save_images(images: xr.Dataset, path: str | Path, overwrite: bool = False) -> None:
     """Write rendered images to netCDF (refusing to overwrite unless asked)."""
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} exists (use overwrite=True / --overwrite)")
-    images.to_netcdf(path)
+    save_netcdf(images, path, overwrite=overwrite)
 
 
 def save_previews(images: xr.Dataset, directory: str | Path) -> list[Path]:

@@ -12,7 +12,7 @@ import xarray as xr
 
 from cloudct.medium.schema import MediumError
 from cloudct.medium.validation import validate_medium
-from cloudct.netcdf import load_netcdf
+from cloudct.netcdf import load_netcdf, save_netcdf
 
 
 def save_medium(ds: xr.Dataset, path: str | os.PathLike, overwrite: bool = False) -> None:
@@ -27,25 +27,21 @@ def save_medium(ds: xr.Dataset, path: str | os.PathLike, overwrite: bool = False
         MediumError: ``ds`` is not a valid medium.
     """
     validate_medium(ds)
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} exists; pass overwrite=True (--overwrite) to replace it")
     ds = ds.copy()
     ds.encoding = {}
     for variable in ds.variables.values():
         variable.encoding = {}
-    encoding = {name: {"_FillValue": None} for name in ds.variables}
-    partial = path.with_name(f".{path.name}.partial")
-    try:
-        ds.to_netcdf(partial, engine="netcdf4", format="NETCDF4", encoding=encoding)
+
+    def restore_bounds_attributes(partial: Path) -> None:
+        # xarray strips the attributes a CF bounds variable shares with its coordinate
+        # (units, long_name); put them back so that every variable carries its units.
         if "z_bounds" in ds:
-            # xarray strips the attributes a CF bounds variable shares with its coordinate
-            # (units, long_name); put them back so that every variable carries its units.
             with netCDF4.Dataset(partial, "a") as nc:
                 nc["z_bounds"].setncatts(ds["z_bounds"].attrs)
-        os.replace(partial, path)
-    finally:
-        partial.unlink(missing_ok=True)
+
+    save_netcdf(ds, path, overwrite=overwrite,
+                encoding={name: {"_FillValue": None} for name in ds.variables},
+                finish=restore_bounds_attributes)
 
 
 def load_medium(path: str | os.PathLike) -> xr.Dataset:

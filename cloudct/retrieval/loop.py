@@ -28,7 +28,7 @@ from cloudct.mc.cameras import Camera
 from cloudct.mc.gradient import gradient_estimate
 from cloudct.mc.scene import Scene
 from cloudct.medium import cell_edges, validate_medium
-from cloudct.netcdf import InputFileError, load_netcdf, require_variables
+from cloudct.netcdf import InputFileError, load_netcdf, require_variables, save_netcdf
 from cloudct.optics import optics_name
 from cloudct.retrieval.config import (  # noqa: F401 (the settings, imported from here too)
     AVERAGING,
@@ -472,10 +472,7 @@ class Retrieval:
             ds[f"optimizer_{key}"] = (("x", "y", "z") if np.ndim(value) == 3 else (), value)
         if self.state.average_sum is not None:
             ds["average_sum"] = (("x", "y", "z"), self.state.average_sum)
-        path = Path(path)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        ds.to_netcdf(tmp)
-        tmp.replace(path)
+        save_netcdf(ds, path, overwrite=True)
 
     @classmethod
     def resume(
