@@ -23,7 +23,7 @@ f(v . w) M / a instead of the peak of f. Where no camera sees x, q = f and nothi
 Gradients: the path-space integrand is unchanged, only the sampling density is new, so the
 score function of a path (seed paper Eq. 49) keeps its terms and the weight f / q is a
 constant factor of the estimate. Path recycling keeps the reference factor f / q of each
-stored vertex (:mod:`cloudct.recycling.kernels`).
+stored vertex (:mod:`cloudct.recycling.record_kernels`).
 
 With ``aim_fraction = 0`` no random number is drawn beyond the plain sampler's, so the
 paths, and the images for a seed, are exactly those of the plain forward estimator.
