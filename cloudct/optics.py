@@ -33,6 +33,8 @@ from cloudct.physics.mie import DEFAULT_WAVELENGTH
 from cloudct.physics.mie import mie_table as load_mie_table
 from cloudct.physics.mixing import OpticalGrid
 from cloudct.physics.phase import PhaseBank, phase_bank
+from cloudct.physics.transmittance import EXPONENTIAL, GAMMA
+from cloudct.physics.transmittance import FAMILIES as TRANSMITTANCE_FAMILIES
 
 GRID = ("x", "y", "z")
 
@@ -268,5 +270,20 @@ def kernel_arrays(optical_medium: xr.Dataset) -> tuple[OpticalGrid, PhaseBank]:
         extinction=np.ascontiguousarray(extinction, dtype=np.float64),
         albedo=np.ascontiguousarray(albedo, dtype=np.float64),
         phase_index=np.ascontiguousarray(phase_index),
+        **_transmittance_arrays(ds, cloud),
     )
     return grid, phase_bank(entries)
+
+
+def _transmittance_arrays(ds: xr.Dataset, cloud: xr.DataArray) -> dict[str, np.ndarray]:
+    """The kernels' transmittance family code and mode per voxel
+    (:mod:`cloudct.physics.transmittance`): gamma of Eq. 6 for ``linear-mix``, 1 / a for
+    ``gamma`` (0 where a = inf: exponential)."""
+    family = TRANSMITTANCE_FAMILIES[ds.attrs.get("transmittance", "exponential")]
+    mode = np.zeros((1, 1, 1))
+    if family != EXPONENTIAL:
+        mode = _on_grid(ds["transmittance_mode"], cloud).astype(np.float64)
+        if family == GAMMA:
+            mode = 1.0 / mode
+    return {"transmittance_family": np.array([family], dtype=np.int64),
+            "transmittance_mode": np.ascontiguousarray(mode)}

@@ -43,6 +43,8 @@ def make_grid(extinction, albedo, phase_index):
         extinction=np.asarray(extinction, dtype=np.float64).reshape(shape),
         albedo=np.asarray(albedo, dtype=np.float64).reshape(shape),
         phase_index=np.asarray(phase_index, dtype=np.int32).reshape(shape),
+        transmittance_family=np.zeros(1, dtype=np.int64),
+        transmittance_mode=np.zeros((1, 1, 1)),
     )
 
 

@@ -32,6 +32,7 @@ from cloudct.mc.pixel_sampling import pixel_table
 from cloudct.mc.render import check_residual, check_sampling, kernel_inputs, run_in_rounds
 from cloudct.mc.runners import camera_gradient_runner, forward_runner
 from cloudct.mc.scene import Scene
+from cloudct.mc.traversal import require_exponential
 
 #: Gradient estimators by name: path score function (forward), differential ratio tracking
 #: and sample matching (both backward, from the cameras).
@@ -72,6 +73,7 @@ def score_function_gradient(
     check_sampling(photons, batches, rr_depth, rr_survival)
     residual = check_residual(residual, scene)
     k = kernel_inputs(medium, scene, aim_fraction)
+    require_exponential(k.grid, "score-function gradients")
     per_batch = math.ceil(int(photons) / batches)
     if executor is not None:
         batch_means, info = check_executor(executor).gradient_batch_means(
@@ -114,6 +116,7 @@ def _camera_gradient(
     check_sampling(samples_per_pixel, batches, rr_depth, rr_survival)
     residual = check_residual(residual, scene)
     k = kernel_inputs(medium, scene, aim_fraction=0.0)  # camera paths aim at no camera
+    require_exponential(k.grid, "gradients")
     pixels = int(np.count_nonzero(residual))
     table = pixel_table(residual, pixel_sampling)
     # per batch: samples of each pixel (uniform), or as many samples in all (table)

@@ -6,7 +6,12 @@ distance of Eq. (32) is found exactly by inverting that sum inside the voxel whe
 reaches the sampled optical depth.
 
 One routine, :func:`march`, walks a ray voxel by voxel; free flights, transmittances to
-cameras and to the sun all call it. With ``periodic`` boundaries a ray that leaves through
+cameras and to the sun all call it. Under a non-exponential transmittance
+(:mod:`cloudct.physics.transmittance`) it carries the equivalent optical depth -log T of
+the recursive form (Vicini et al. 2021, Eqs. 7-8), exact per voxel, and ends a free flight
+where T = u inside the voxel; T restarts at 1 at every path vertex (the paper's model).
+
+With ``periodic`` boundaries a ray that leaves through
 a side face re-enters through the opposite face; it ends when it leaves through the top
 or reaches the bottom. With ``open`` boundaries it ends when it leaves through any face.
 """
@@ -21,6 +26,11 @@ from numba import njit
 
 from cloudct.mc.accumulate import add_to
 from cloudct.physics.mixing import total_extinction
+from cloudct.physics.transmittance import (
+    EXPONENTIAL,
+    equivalent_depth_after,
+    optical_depth_to_reach,
+)
 
 #: March outcomes.
 STOPPED = 0  # the sampled optical depth was reached inside the medium
@@ -179,22 +189,34 @@ def march(
     nx = xe.size - 1
     ny = ye.size - 1
     nz = ze.size - 1
+    family = grid.transmittance_family[0]
     tau = 0.0
     walked = 0.0
     while True:
         t, axis = next_face(xe, ye, ze, px, py, pz, ux, uy, uz, ix, iy, iz)
         beta = total_extinction(grid, ix, iy, iz)
-        dtau = beta * t
+        if family == EXPONENTIAL:
+            tau_next = tau + beta * t
+        else:  # tau is the equivalent optical depth -log T (Eqs. 7-8)
+            mode = grid.transmittance_mode[ix, iy, iz]
+            tau_next = equivalent_depth_after(family, tau, mode, beta * t)
         piece = t  # the length walked in this voxel
         stop = False
         if walked + t >= max_distance:
             s = max_distance - walked
-            if tau + beta * s < tau_target:
+            if family == EXPONENTIAL:
+                tau_s = tau + beta * s
+            else:
+                tau_s = equivalent_depth_after(family, tau, mode, beta * s)
+            if tau_s < tau_target:
                 piece = s
                 stop = True
-                tau_end = tau + beta * s
-        if not stop and tau + dtau >= tau_target:
-            piece = (tau_target - tau) / beta
+                tau_end = tau_s
+        if not stop and tau_next >= tau_target:
+            if family == EXPONENTIAL:
+                piece = (tau_target - tau) / beta
+            else:  # the free flight ends where T = u inside this voxel
+                piece = optical_depth_to_reach(family, tau, mode, tau_target) / beta
             stop = True
             tau_end = tau_target
         if lengths is not None:
@@ -211,7 +233,7 @@ def march(
                 STOPPED, px + piece * ux, py + piece * uy, pz + piece * uz, ix, iy, iz, tau_end,
                 walked + piece,
             )
-        tau += dtau
+        tau = tau_next
         walked += t
         # cross the face (spelled out here and in the DRT walk: this is the engine's
         # hottest loop, and an inlined function returning the 7-tuple ran 1.6x slower)
@@ -228,6 +250,17 @@ def march(
             status, px, py, pz, ix, iy, iz = cross_boundary(grid, px, py, pz, ix, iy, iz, periodic)
             if status != INSIDE:
                 return status, px, py, pz, ix, iy, iz, tau, walked
+
+
+def require_exponential(grid, what: str) -> None:
+    """Refuse ``what`` (a gradient, path recycling) for a medium whose transmittance is not
+    exponential: those estimators take the score and the replay of exponential paths."""
+    if grid.transmittance_family[0] != EXPONENTIAL:
+        raise ValueError(
+            f"{what} under a non-exponential transmittance (the medium's transmittance "
+            "attribute) are not implemented: render such media, or retrieve under the "
+            "exponential assumption (a medium without transmittance_mode)"
+        )
 
 
 @njit(cache=True)

@@ -58,6 +58,9 @@ _VARIABLES: dict[str, _Spec] = {
     "cloud_phase_index": _Spec((_XYZ,), "1", "row of cloud_phase used in each cell"),
     "air_extinction": _Spec((_SCALAR, ("z",), _XYZ), "km-1", "air extinction coefficient"),
     "air_albedo": _Spec((_SCALAR,), "1", "air single-scattering albedo"),
+    "transmittance_mode": _Spec(
+        (_SCALAR, _XYZ), "1", "transmittance mode of the unresolved sub-grid variability"
+    ),
 }
 
 _COORDINATES: dict[str, _Spec] = {

@@ -18,6 +18,7 @@ from cloudct.medium.schema import (
     SPACING_RTOL,
     MediumError,
 )
+from cloudct.physics.transmittance import FAMILIES as TRANSMITTANCE_FAMILIES
 from cloudct.units import units_problem
 
 
@@ -194,6 +195,8 @@ def _check_form(ds: xr.Dataset, name: str) -> None:
         if problem is not None:
             raise MediumError(problem)
     bad = ~np.isfinite(array.values)
+    if name == "transmittance_mode":  # the power law's a may be +inf: exponential there
+        bad &= array.values != np.inf
     if np.any(bad):
         raise MediumError(
             f"{name} has {int(bad.sum())} NaN or infinite values{_first(array, bad)}; note "
@@ -221,11 +224,30 @@ def _check_values(ds: xr.Dataset) -> None:
         _require(ds["cloud_g"], np.abs(ds["cloud_g"].values) < 1, "must satisfy -1 < g < 1")
     if "cloud_phase" in ds:
         _check_phase_table(ds)
+    _check_transmittance(ds)
     if "wavelength" in ds.attrs:
         wavelength = ds.attrs["wavelength"]
         number = isinstance(wavelength, (int, float, np.integer, np.floating))
         if not (number and np.isfinite(wavelength) and wavelength > 0):
             raise MediumError(f"attribute wavelength must be > 0 (micron), is {wavelength!r}")
+
+
+def _check_transmittance(ds: xr.Dataset) -> None:
+    """The transmittance family (attribute ``transmittance``) and its mode field."""
+    family = ds.attrs.get("transmittance", "exponential")
+    if family not in TRANSMITTANCE_FAMILIES:
+        raise MediumError(f"attribute transmittance must be one of "
+                          f"{sorted(TRANSMITTANCE_FAMILIES)}, is {family!r}")
+    if family != "exponential" and "transmittance_mode" not in ds:
+        raise MediumError(f"transmittance {family!r} needs the variable transmittance_mode")
+    if "transmittance_mode" not in ds or family == "exponential":
+        return
+    mode = ds["transmittance_mode"]
+    if family == "linear-mix":
+        _require(mode, (mode.values >= 0) & (mode.values <= 1),
+                 "(gamma of Vicini et al.'s Eq. 6) must be in [0, 1]")
+    else:
+        _require(mode, mode.values > 0, "(the power law's a) must be > 0 (inf: exponential)")
 
 
 def _check_phase_table(ds: xr.Dataset) -> None:

@@ -29,6 +29,10 @@ class OpticalGrid(NamedTuple):
     extinction: np.ndarray  # float64[ntype, nx, ny, nz], 1/km; type 0 air, 1 cloud
     albedo: np.ndarray  # float64[ntype, nx, ny, nz]
     phase_index: np.ndarray  # int32[ntype, nx, ny, nz], row of the PhaseBank
+    # the transmittance family (cloudct.physics.transmittance: 0 exponential) and its mode
+    # per voxel (float64[nx, ny, nz]; float64[1, 1, 1] for the exponential family)
+    transmittance_family: np.ndarray  # int64[1]
+    transmittance_mode: np.ndarray
 
 
 @njit(cache=True, inline="always")

@@ -53,6 +53,7 @@ import xarray as xr
 from cloudct.mc.forward import ENTRY, ESCAPE, GROUND, SCATTER, PathRecord
 from cloudct.mc.render import kernel_inputs, run_in_rounds
 from cloudct.mc.scene import Scene
+from cloudct.mc.traversal import require_exponential
 from cloudct.recycling.connection_recording import record_connections_within_budget
 from cloudct.recycling.path_terms import StoreArrays, flat_total_extinction
 from cloudct.recycling.record_kernels import (
@@ -238,6 +239,7 @@ def record_paths(
         raise ValueError(f"memory_budget must be a positive number of bytes, got {memory_budget}")
     start_time = time.perf_counter()
     k = kernel_inputs(medium, scene, aim_fraction)
+    require_exponential(k.grid, "recycled paths")
     shape = k.grid.extinction.shape[1:]
     if variable is not None:
         variable = np.asarray(variable)
