@@ -305,9 +305,4 @@ def load_measurements(path: str | os.PathLike) -> xr.Dataset:
         MeasurementError: the file does not hold a valid measurement set (the message names
             the file).
     """
-    ds = load_netcdf(path, "measurement")
-    try:
-        validate_measurements(ds)
-    except MeasurementError as err:
-        raise MeasurementError(f"measurement file {path}: {err}") from None
-    return ds
+    return load_netcdf(path, "measurement", validate_measurements)

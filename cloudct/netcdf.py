@@ -21,19 +21,33 @@ class InputFileError(ValueError):
     """An input file that cannot be read as netCDF, or lacks what it must hold."""
 
 
-def load_netcdf(path: str | os.PathLike, what: str) -> xr.Dataset:
+def load_netcdf(
+    path: str | os.PathLike, what: str, validate: Callable[[xr.Dataset], None] | None = None
+) -> xr.Dataset:
     """The whole netCDF file at ``path``, read into memory (the file is closed).
 
     Args:
         path: the file.
         what: what the file should hold ("medium", "scene", ...), for the messages.
+        validate: a check of the contents; the error it raises (a ValueError) is raised
+            again, of the same type, with the file named.
 
     Raises:
         FileNotFoundError: no such file.
         InputFileError: a directory, or a file that the netCDF library cannot read
             (truncated, empty, or of another format).
     """
-    path = Path(path)
+    ds = _read(Path(path), what)
+    if validate is not None:
+        try:
+            validate(ds)
+        except ValueError as err:
+            raise type(err)(f"{what} file {path}: {err}") from None
+    return ds
+
+
+def _read(path: Path, what: str) -> xr.Dataset:
+    """The file's contents, or one line saying why it cannot be read as netCDF."""
     if not path.exists():
         raise FileNotFoundError(f"{what} file {path} does not exist")
     if path.is_dir():

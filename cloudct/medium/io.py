@@ -10,7 +10,6 @@ from pathlib import Path
 import netCDF4
 import xarray as xr
 
-from cloudct.medium.schema import MediumError
 from cloudct.medium.validation import validate_medium
 from cloudct.netcdf import load_netcdf, save_netcdf
 
@@ -52,9 +51,4 @@ def load_medium(path: str | os.PathLike) -> xr.Dataset:
         InputFileError: the file cannot be read as netCDF (truncated, another format).
         MediumError: the file does not hold a valid medium (the message names the file).
     """
-    ds = load_netcdf(path, "medium")
-    try:
-        validate_medium(ds)
-    except MediumError as err:
-        raise MediumError(f"medium file {path}: {err}") from None
-    return ds
+    return load_netcdf(path, "medium", validate_medium)
