@@ -12,6 +12,7 @@ from cloudct.distributed import close_client, connect, executor
 from cloudct.mc.render import METHODS, render, save_images, save_previews
 from cloudct.mc.scene import BOUNDARIES, PRESETS, build_scene, load_scene, single_cloud_scene
 from cloudct.mc.scene_figure import save_scene_figure
+from cloudct.mc.sensors import domain_means
 from cloudct.medium import cell_edges
 from cloudct.netcdf import save_netcdf
 
@@ -29,6 +30,8 @@ def _cli_render(args: argparse.Namespace) -> int:
     output = Path(args.output)
     if output.exists() and not args.overwrite:
         raise FileExistsError(f"{output} exists (use --overwrite)")
+    if args.fluxes or args.probe:
+        return _render_fluxes(args, medium, scene, output)
     client = connect(args.scheduler, args.workers, backend=args.backend)
     spread = None if client is None else executor(client)
     try:
@@ -58,6 +61,37 @@ def _cli_render(args: argparse.Namespace) -> int:
         f"{images.attrs['wall_time']:.1f} s, {rate:.3g}/s{where})"
     )
     return 0
+
+
+def _render_fluxes(args: argparse.Namespace, medium, scene, output: Path) -> int:
+    """``cloudct render --fluxes``: the domain-mean fluxes and radiance probes
+    (:func:`cloudct.mc.sensors.domain_means`) for the scene's sun, boundaries and ground."""
+    if args.method != "forward" or args.workers or args.scheduler:
+        raise ValueError("--fluxes and --probe run the forward method in this process "
+                         "(no --method backward, --workers or --scheduler)")
+    means = domain_means(
+        medium, directions=args.probe or [], sun=scene.sun, boundary=scene.boundary,
+        ground_albedo=scene.ground_albedo, photons=args.photons, seed=args.seed,
+        batches=args.batches, aim_fraction=args.aim_fraction, progress=None,
+        backend=args.backend,
+    )
+    save_netcdf(means, output, overwrite=args.overwrite)
+    shares = ", ".join(f"{name} {float(means[name]):.4g} +- {float(means[name + '_std_error']):.2g}"
+                       for name in ("albedo", "transmittance", "absorptance", "side_escape",
+                                    "ground_absorptance"))
+    print(f"wrote {output} ({means.attrs['photons']} photons, "
+          f"{means.attrs['wall_time']:.1f} s): {shares}")
+    return 0
+
+
+def _probe(text: str) -> tuple[float, float]:
+    """``ZENITH:AZIMUTH`` (degrees) of ``--probe``."""
+    zenith, _, azimuth = text.partition(":")
+    try:
+        return float(zenith), float(azimuth or 0.0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"a probe is ZENITH:AZIMUTH in degrees, got {text!r}") from None
 
 
 def _cli_scene(args: argparse.Namespace) -> int:
@@ -115,6 +149,14 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
                    "(unbiased; tames Mie fireflies). 0 switches it off; default 0.1 with Mie "
                    "(tabulated) phase functions, else 0")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.add_argument("--fluxes", action="store_true",
+                   help="write the domain-mean fluxes (albedo, transmittance, absorptance, "
+                   "side escape, ground absorption, with standard errors) for the scene's "
+                   "sun, boundaries and ground instead of images (forward, CPU)")
+    p.add_argument("--probe", type=_probe, action="append", metavar="ZENITH:AZIMUTH",
+                   help="with --fluxes (implied): also the domain-mean radiance travelling "
+                   "in this direction [deg]: zenith from +z (< 90 leaving the top, > 90 "
+                   "arriving at the bottom), azimuth from +x toward +y; repeat for more")
     add_optics_option(p)
     add_distributed_options(p)
     p.set_defaults(func=_cli_render)

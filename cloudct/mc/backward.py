@@ -1,9 +1,11 @@
 """Backward (camera -> sun) path tracing with next-event estimation towards the sun.
 
 A pixel's value is the average radiance over its area on the image plane, so each sample
-starts at the pinhole through a uniform point of the pixel (:func:`cloudct.mc.cameras.
-pixel_ray`). The ray enters the medium, flies a distance sampled by exact inversion of the
-optical depth (Eq. 32), and at every scattering vertex collects the single-scattered sunlight
+starts at the pinhole through a uniform point of the pixel (an orthographic camera: at a
+uniform point of the pixel on its image rectangle, along the view direction;
+:func:`cloudct.mc.cameras.pixel_ray`). The ray enters the medium, flies a distance sampled
+by exact inversion of the optical depth (Eq. 32), and at every scattering vertex collects
+the single-scattered sunlight
 
     throughput * albedo * f_p(x, cos angle(sun travel, -ray)) * T(x -> sun) * F0,  F0 = 1,
 
@@ -41,18 +43,15 @@ INV_PI = 1.0 / math.pi
 @njit(cache=True)
 def camera_ray_entry(grid, cams, periodic, view, row, col, state):
     """Start of a backward path: the ray from the pinhole through a uniform point of pixel
-    (view, row, col), taken to where it enters the medium (with periodic boundaries,
-    folded into the box).
+    (view, row, col) (orthographic: from that point along the view direction), taken to
+    where it enters the medium (with periodic boundaries, folded into the box).
 
     Returns ``(hit, px, py, pz, ux, uy, uz, ix, iy, iz, state)``; ``hit`` is False when
     the ray misses the medium.
     """
     xi_u, state = uniform(state)
     xi_v, state = uniform(state)
-    ux, uy, uz = pixel_ray(cams, view, row, col, xi_u, xi_v)
-    ox = cams.position[view, 0]
-    oy = cams.position[view, 1]
-    oz = cams.position[view, 2]
+    ox, oy, oz, ux, uy, uz = pixel_ray(cams, view, row, col, xi_u, xi_v)
     t = ray_box_entry(grid, ox, oy, oz, ux, uy, uz, periodic)
     if t < 0.0:
         return False, ox, oy, oz, ux, uy, uz, 0, 0, 0, state

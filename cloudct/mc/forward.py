@@ -65,6 +65,16 @@ GROUND = 2  # a reflection by the Lambertian ground
 ESCAPE = 3  # where the path left the medium (or was absorbed by a black / no ground)
 
 
+#: Flux tallies of a forward path (``fluxes`` of :func:`trace_photon`), in photon weight.
+FLUX_TOP = 0  # left through the top face
+FLUX_SIDE = 1  # left through a side face (open boundaries)
+FLUX_DIRECT = 2  # reached the bottom face unscattered (the direct beam)
+FLUX_DIFFUSE = 3  # reached the bottom face after scattering or a ground reflection
+FLUX_GROUND = 4  # absorbed by the ground (1 - A of what reaches it)
+FLUX_MEDIUM = 5  # absorbed in the medium: weight x (1 - albedo) at each collision
+NFLUX = 6
+
+
 class PathRecord(NamedTuple):
     """Where RECORD mode writes a path: one row per record, CSR over photons (the caller
     gives each photon its first row). The direction is that of the segment arriving at the
@@ -192,7 +202,7 @@ def deposit_trail(trail, gradient, weight):
 @njit(cache=True)
 def trace_photon(
     grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, index,
-    mode, image, residual, gradient, path_sum, record=None, first=0, trail=None,
+    mode, image, residual, gradient, path_sum, record=None, first=0, trail=None, fluxes=None,
 ):
     """Trace forward photon ``index`` (``ground_albedo < 0``: no ground).
 
@@ -211,6 +221,10 @@ def trace_photon(
     return the number of path records (:data:`ENTRY`, its vertices, and the :data:`ESCAPE`
     of a path that leaves or meets a non-reflecting ground), and RECORD writes them into
     ``record`` from row ``first`` (:class:`PathRecord`, for path recycling).
+
+    With a float64[1, 1, NFLUX] array ``fluxes``, the path also adds where its weight goes
+    (:data:`FLUX_TOP` ... :data:`FLUX_MEDIUM`): the domain-mean fluxes of
+    :mod:`cloudct.mc.sensors`. The path itself does not change.
 
     Returns ``(vertices, S)``; ``(records, 0)`` in COUNT and RECORD modes.
     """
@@ -252,8 +266,14 @@ def trace_photon(
             )
             records += 1
         if status == LEFT:
+            if fluxes is not None:
+                add_to(fluxes, 0, 0, FLUX_TOP if pz >= grid.z_edges[-1] else FLUX_SIDE, weight)
             return (depth if mode < COUNT else records), total
         if status == BOTTOM:
+            if fluxes is not None:
+                add_to(fluxes, 0, 0, FLUX_DIRECT if depth == 0 else FLUX_DIFFUSE, weight)
+                if ground_albedo >= 0.0:
+                    add_to(fluxes, 0, 0, FLUX_GROUND, weight * (1.0 - ground_albedo))
             if ground_albedo <= 0.0:
                 return (depth if mode < COUNT else records), total
             s_event = 0.0
@@ -266,6 +286,8 @@ def trace_photon(
             ux, uy, uz, state = lambertian_bounce(state)
         else:
             albedo = effective_albedo(grid, ix, iy, iz)
+            if fluxes is not None:
+                add_to(fluxes, 0, 0, FLUX_MEDIUM, weight * (1.0 - albedo))
             if albedo == 0.0:
                 return (depth if mode < COUNT else records), total
             weight *= albedo

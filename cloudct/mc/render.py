@@ -128,7 +128,14 @@ def render_batches(
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     check_sampling(photons, batches, rr_depth, rr_survival)
-    k = kernel_inputs(medium, scene, aim_fraction if method == "forward" else 0.0)
+    orthographic = any(c.projection == "orthographic" for c in scene.cameras)
+    if orthographic and backend != "cpu":
+        raise ValueError(
+            f"orthographic cameras render on the CPU only (yet): use backend='cpu', not "
+            f"{backend!r}"
+        )
+    k = kernel_inputs(medium, scene, aim_fraction if method == "forward" else 0.0,
+                      orthographic=orthographic)
     per_batch = math.ceil(int(photons) / batches)
     if executor is not None:
         return check_executor(executor).render_batch_means(
@@ -198,29 +205,39 @@ class KernelInputs(NamedTuple):
 
 
 def kernel_inputs(
-    medium: xr.Dataset, scene: Scene, aim_fraction: float | None = None
+    medium: xr.Dataset, scene: Scene, aim_fraction: float | None = None,
+    orthographic: bool = False,
 ) -> KernelInputs:
     """Validate a medium and a scene and gather them into kernel arrays (``aim_fraction``:
     the forward estimator's detector directional importance sampling, see
     :mod:`cloudct.mc.detector_sampling`; 0 switches it off, None chooses it by the optics:
-    :func:`default_aim_fraction`)."""
-    validate_medium(medium)
-    optical = medium if is_optical(medium) else to_optical(medium)
-    grid, bank = kernel_arrays(optical)
-    edges = cell_edges(optical)
+    :func:`default_aim_fraction`). ``orthographic``: whether the caller supports
+    orthographic cameras (:func:`cloudct.mc.cameras.camera_arrays`)."""
+    grid, bank, edges = medium_arrays(medium)
     check_scene(scene, edges)
     if aim_fraction is None:
         aim_fraction = default_aim_fraction(bank)
     return KernelInputs(
         grid=grid,
         bank=bank,
-        cams=camera_arrays(scene.cameras, aim_fraction),
+        cams=camera_arrays(scene.cameras, aim_fraction, orthographic),
         copies=periodic_copy_ranges(scene, edges),
         sun=sun_arrays(scene.sun, edges, scene.periodic),
         periodic=scene.periodic,
         ground=-1.0 if scene.ground_albedo is None else float(scene.ground_albedo),
         edges=edges,
     )
+
+
+def medium_arrays(
+    medium: xr.Dataset,
+) -> tuple[OpticalGrid, PhaseBank, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """A validated medium's kernel arrays and cell edges (microphysical media converted
+    with their optics)."""
+    validate_medium(medium)
+    optical = medium if is_optical(medium) else to_optical(medium)
+    grid, bank = kernel_arrays(optical)
+    return grid, bank, cell_edges(optical)
 
 
 def default_aim_fraction(bank: PhaseBank) -> float:

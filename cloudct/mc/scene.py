@@ -191,29 +191,25 @@ def build_scene(
     return scene
 
 
-def corner_rays(camera: Camera) -> np.ndarray:
-    """Unit directions through the four corners of the image."""
-    forward, right, up = camera.frame()
-    hw = np.tan(np.radians(camera.fov) / 2.0)
-    hh = hw * camera.nrows / camera.ncols
-    rays = np.array([forward + a * hw * right + b * hh * up for a in (-1, 1) for b in (-1, 1)])
-    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+def corner_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Origins and unit directions (each (4, 3)) of the rays through the image's corners."""
+    hw, hh = camera.half_size()
+    return camera.rays(np.array([-hw, -hw, hw, hw]), np.array([-hh, hh, -hh, hh]))
 
 
-def _pixel_rays(camera: Camera) -> np.ndarray:
-    """Unit directions through every pixel centre, shape (nrows * ncols, 3)."""
-    forward, right, up = camera.frame()
-    hw = np.tan(np.radians(camera.fov) / 2.0)
-    hh = hw * camera.nrows / camera.ncols
+def _pixel_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Origins and unit directions of the rays through every pixel centre, each of shape
+    (nrows * ncols, 3)."""
+    hw, hh = camera.half_size()
     u = -hw + (np.arange(camera.ncols) + 0.5) * 2.0 * hw / camera.ncols
     v = hh - (np.arange(camera.nrows) + 0.5) * 2.0 * hh / camera.nrows
     uu, vv = np.meshgrid(u, v)
-    rays = forward + uu.reshape(-1, 1) * right + vv.reshape(-1, 1) * up
-    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    return camera.rays(uu, vv)
 
 
 def _rays_hit_box(origin: np.ndarray, rays: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
-    """Whether any ray from ``origin`` meets the axis-aligned box [lo, hi] (slab test)."""
+    """Whether any ray from ``origin`` (one point, or one per ray) meets the axis-aligned
+    box [lo, hi] (slab test)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         t0 = (lo - origin) / rays
         t1 = (hi - origin) / rays
@@ -228,6 +224,8 @@ def check_scene(scene: Scene, edges: tuple[np.ndarray, np.ndarray, np.ndarray]) 
     hi = np.array([e[-1] for e in edges])
     for i, cam in enumerate(scene.cameras):
         pos = np.asarray(cam.position, float)
+        if cam.projection == "orthographic":
+            _check_image_plane(i, cam, lo, hi, scene.periodic)
         if scene.periodic:
             if lo[2] <= pos[2] <= hi[2]:
                 raise ValueError(
@@ -238,27 +236,55 @@ def check_scene(scene: Scene, edges: tuple[np.ndarray, np.ndarray, np.ndarray]) 
             raise ValueError(f"camera {i} at {tuple(pos)} km is inside the medium's box")
         if scene.ground_albedo is not None and pos[2] < lo[2]:
             raise ValueError(f"camera {i} is below the ground (z = {pos[2]} < {lo[2]} km)")
-        rays = _pixel_rays(cam)
+        origins, rays = _pixel_rays(cam)
         if scene.periodic:
-            seen = np.any(np.sign(rays[:, 2]) == np.sign(lo[2] - pos[2]))
+            seen = np.any(np.sign(rays[:, 2]) == np.sign(lo[2] - origins[:, 2]))
         else:
-            seen = _rays_hit_box(pos, rays, lo, hi) or _box_corner_in_view(cam, lo, hi)
+            seen = _rays_hit_box(origins, rays, lo, hi) or _box_corner_in_view(cam, lo, hi)
         if not seen:
             raise ValueError(f"camera {i} does not see the medium: no pixel looks at the box")
+
+
+def _check_image_plane(
+    index: int, camera: Camera, lo: np.ndarray, hi: np.ndarray, periodic: bool
+) -> None:
+    """An orthographic camera's image rectangle must lie outside the medium: a local
+    estimate's transmittance runs to where its ray leaves the medium. With periodic
+    boundaries the rectangle lies above (or below) the slab; with open ones the whole box
+    lies in front of its plane."""
+    forward, _, _ = camera.frame()
+    if periodic:
+        z = corner_rays(camera)[0][:, 2]
+        if not (np.all(z > hi[2]) or np.all(z < lo[2])):
+            raise ValueError(
+                f"camera {index}'s orthographic image rectangle reaches into the periodic "
+                f"slab (corners at z = {np.round(z, 4).tolist()} km, slab from {lo[2]} to "
+                f"{hi[2]} km): move it away from the slab"
+            )
+        return
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])
+    depth = (corners - np.asarray(camera.position, float)) @ forward
+    if np.any(depth <= 0.0) and np.any(depth > 0.0):  # (all behind: it sees nothing)
+        raise ValueError(
+            f"camera {index}'s orthographic image plane cuts the medium's box: move the "
+            "camera back along its view direction until the whole box lies in front of it"
+        )
 
 
 def _box_corner_in_view(camera: Camera, lo: np.ndarray, hi: np.ndarray) -> bool:
     """Whether a corner of the box projects into the image (a box smaller than a pixel)."""
     forward, right, up = camera.frame()
-    hw = np.tan(np.radians(camera.fov) / 2.0)
-    hh = hw * camera.nrows / camera.ncols
+    hw, hh = camera.half_size()
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                         for z in (lo[2], hi[2])])
     d = corners - np.asarray(camera.position, float)
     depth = d @ forward
     ok = depth > 0
-    u = (d @ right)[ok] / depth[ok]
-    v = (d @ up)[ok] / depth[ok]
+    u = (d @ right)[ok]
+    v = (d @ up)[ok]
+    if camera.projection == "pinhole":
+        u, v = u / depth[ok], v / depth[ok]
     return bool(np.any((np.abs(u) < hw) & (np.abs(v) < hh)))
 
 
@@ -268,8 +294,9 @@ def periodic_copy_ranges(
     """Range of periodic images (i0, i1, j0, j1) each camera can see, int64[nview, 4].
 
     The part of the slab inside a camera's view is the convex hull of where its four
-    corner rays meet the slab's bottom and top planes; the box copies i * Lx, j * Ly that
-    overlap it are the ones a local estimate must visit. Open boundaries: only (0, 0).
+    corner rays (pinhole or orthographic) meet the slab's bottom and top planes; the box
+    copies i * Lx, j * Ly that overlap it are the ones a local estimate must visit. Open
+    boundaries: only (0, 0).
     """
     ranges = np.zeros((len(scene.cameras), 4), dtype=np.int64)
     if not scene.periodic:
@@ -277,17 +304,17 @@ def periodic_copy_ranges(
     xe, ye, ze = edges
     lx, ly = xe[-1] - xe[0], ye[-1] - ye[0]
     for k, cam in enumerate(scene.cameras):
-        pos = np.asarray(cam.position, float)
-        rays = corner_rays(cam)
+        origins, rays = corner_rays(cam)
         points = []
         for zp in (ze[0], ze[-1]):
-            t = (zp - pos[2]) / rays[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = (zp - origins[:, 2]) / rays[:, 2]
             if np.any(~np.isfinite(t)) or np.any(t <= 0.0):
                 raise ValueError(
                     f"camera {k} sees the periodic slab out to the horizon; narrow its field "
                     "of view or tilt it towards the slab"
                 )
-            points.append(pos[:2] + t[:, None] * rays[:, :2])
+            points.append(origins[:, :2] + t[:, None] * rays[:, :2])
         pts = np.concatenate(points)
         # copy i holds x + i Lx for x in [x0, x1): it meets [xmin, xmax] for
         # ceil((xmin - x1) / Lx) <= i <= floor((xmax - x0) / Lx)

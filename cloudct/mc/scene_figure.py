@@ -16,8 +16,8 @@ def save_scene_figure(scene: Scene, box_min: np.ndarray, box_max: np.ndarray,
     """Write the scene figure to ``path`` (PNG); returns the path.
 
     Each camera is a dot with its number, a line to the point it looks at and its four
-    corner rays drawn to that distance; the box is the medium's; the arrow is the
-    direction of the sun's rays.
+    corner rays (an orthographic camera's from its image corners) drawn to that distance;
+    the box is the medium's; the arrow is the direction of the sun's rays.
     """
     import matplotlib
 
@@ -34,9 +34,9 @@ def save_scene_figure(scene: Scene, box_min: np.ndarray, box_max: np.ndarray,
         for k, cam in enumerate(scene.cameras):
             p = np.asarray(cam.position, dtype=float)
             reach = float(np.linalg.norm(np.subtract(cam.lookat, p)))
-            for ray in corner_rays(cam):
-                q = p + reach * ray
-                ax.plot([p[i], q[i]], [p[j], q[j]], color="tab:blue", lw=0.5, alpha=0.5)
+            for o, ray in zip(*corner_rays(cam), strict=True):
+                q = o + reach * ray
+                ax.plot([o[i], q[i]], [o[j], q[j]], color="tab:blue", lw=0.5, alpha=0.5)
             ax.plot([p[i], cam.lookat[i]], [p[j], cam.lookat[j]], color="tab:blue", lw=0.8)
             ax.plot(p[i], p[j], "o", color="tab:blue", ms=4)
             ax.annotate(str(k), (p[i], p[j]), textcoords="offset points", xytext=(3, 3),
