@@ -16,7 +16,7 @@ import hashlib
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +24,6 @@ import xarray as xr
 from tqdm.auto import tqdm
 
 from cloudct.distributed.executor import executor
-from cloudct.mc.cameras import Camera
 from cloudct.mc.gradient import gradient_estimate
 from cloudct.mc.scene import Scene
 from cloudct.medium import cell_edges, validate_medium
@@ -65,10 +64,7 @@ def coarse_measurements(measurements: xr.Dataset, block: int) -> xr.Dataset:
     radiance = measurements["radiance"].values
     nv, nr, nc = radiance.shape
     coarse = radiance.reshape(nv, nr // block, block, nc // block, block).mean(axis=(2, 4))
-    cams = [
-        Camera(c.position, c.lookat, c.up, c.fov, c.nrows // block, c.ncols // block)
-        for c in scene.cameras
-    ]
+    cams = [replace(c, nrows=c.nrows // block, ncols=c.ncols // block) for c in scene.cameras]
     ds = Scene(cams, scene.sun, scene.boundary, scene.ground_albedo).to_dataset()
     ds["radiance"] = (("view", "row", "col"), coarse)
     ds["radiance"].attrs.update(measurements["radiance"].attrs)
