@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 import pytest
+from mcstats import assert_consistent
 from numba import njit
 from test_forward import uniform_axis
 
@@ -17,6 +18,7 @@ from cloudct.mc.cameras import Camera
 from cloudct.mc.gradient import score_function_gradient
 from cloudct.mc.render import render
 from cloudct.mc.scene import Scene
+from cloudct.mc.sensors import domain_means
 from cloudct.mc.sun import Sun
 from cloudct.mc.traversal import BOTTOM, INF, locate_point, march
 from cloudct.medium import MediumError, optical_medium, validate_medium
@@ -165,3 +167,25 @@ def test_bad_modes_and_unsupported_estimators_are_refused():
     with pytest.raises(ValueError, match="non-exponential transmittance"):
         score_function_gradient(slab(family="gamma", mode=2.0), scene, np.ones((1, 4, 4)),
                                 photons=100, batches=2, progress=False)
+
+
+def test_energy_is_conserved_and_the_direct_beam_is_f_under_the_model():
+    """Domain-mean fluxes (cloudct.mc.sensors) of a power-law slab (a = 2): conservative
+    over a white ground with periodic boundaries everything comes back out of the top
+    (albedo 1); absorbing, the direct transmittance is f(tau / mu0) and the energy balance
+    closes, within standard errors."""
+    sun = Sun(30.0, 0.0)
+    conservative = slab(family="gamma", mode=2.0).assign(cloud_albedo=1.0)
+    means = domain_means(conservative, sun=sun, boundary="periodic", ground_albedo=1.0,
+                         photons=32_000, seed=4, rr_depth=5, progress=False)
+    assert float(means.albedo_std_error) > 1e-4  # the roulette's noise: a real test
+    assert_consistent(float(means.albedo), float(means.albedo_std_error), 1.0,
+                      means.attrs["batches"], label="power law, white ground")
+    means = domain_means(slab(family="gamma", mode=2.0), sun=sun, boundary="periodic",
+                         photons=32_000, seed=5, rr_depth=3, progress=False)
+    direct = closed_form("gamma", np.array(2.0 / math.cos(math.radians(30.0))), 2.0)
+    assert_consistent(float(means.transmittance_direct),
+                      float(means.transmittance_direct_std_error), float(direct),
+                      means.attrs["batches"], label="power-law direct beam")
+    assert_consistent(float(means.energy_balance), float(means.energy_balance_std_error), 1.0,
+                      means.attrs["batches"], label="power-law energy balance")
