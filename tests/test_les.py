@@ -1,4 +1,5 @@
-"""LES readers, the bundled single cloud and the ``les2nc`` command."""
+"""LES readers, the bundled single cloud and cloud field, the seed paper's cloud-field
+window and the ``les2nc`` command."""
 
 from __future__ import annotations
 
@@ -13,12 +14,17 @@ import xarray as xr
 import cloudct.cli
 from cloudct.cli.media import register_cli
 from cloudct.les import (
+    BUNDLED_FIELD_SOURCE,
     BUNDLED_SOURCE,
+    SEED_PAPER_FIELD_SHAPE,
     LESFormatError,
+    bundled_cloud_field,
     bundled_single_cloud,
+    densest_window,
     read_jpl_les,
     read_les,
     read_shdom_particle_file,
+    seed_paper_cloud_field,
 )
 from cloudct.mc.render import single_cloud_medium
 from cloudct.medium import cell_edges, domain_bounds, load_medium
@@ -91,6 +97,49 @@ def test_bundled_single_cloud_is_the_shared_file(single_cloud):
     np.testing.assert_array_equal(ds["lwc"].values, single_cloud["lwc"].values)
     if (LES_DIR / "rico32x37x26.txt").exists():
         assert (LES_DIR / "rico32x37x26.txt").read_bytes() == BUNDLED.read_bytes()
+
+
+def test_bundled_cloud_field_is_the_shared_file():
+    field = bundled_cloud_field()
+    assert field.attrs["source"] == BUNDLED_FIELD_SOURCE
+    assert "pyshdom" in field.attrs["source"] and "JPL" in field.attrs["source"]
+    assert field["lwc"].shape == (122, 106, 39)
+    shared = LES_DIR / "rico122x106x39.txt"
+    if shared.exists():
+        assert shared.read_bytes() == (BUNDLED.parent / "rico122x106x39.txt").read_bytes()
+
+
+def test_densest_window_is_the_window_of_the_largest_sum():
+    field = np.random.default_rng(5).uniform(size=(9, 7, 6))
+    shape = (4, 3, 5)
+    sums = {(i, j, k): field[i:i + 4, j:j + 3, k:k + 5].sum()
+            for i in range(6) for j in range(5) for k in range(2)}
+    assert densest_window(field, shape) == max(sums, key=sums.get)
+    assert densest_window(np.ones((5, 5, 5)), (2, 2, 2)) == (0, 0, 0)  # ties: the first
+    with pytest.raises(ValueError, match="does not fit"):
+        densest_window(field, (10, 3, 5))
+
+
+def test_seed_paper_cloud_field_is_the_window_of_the_most_cloudy_cells():
+    """79 x 84 x 27 cells (1.58 x 1.68 x 1.08 km, the seed paper's Table 1) at cells
+    x 39..117, y 14..97, z 3..29 of rico122x106x39, in the LES domain's coordinates; no
+    window one cell over along any axis holds more cloudy cells."""
+    field, crop = bundled_cloud_field(), seed_paper_cloud_field()
+    assert crop["lwc"].shape == SEED_PAPER_FIELD_SHAPE == (79, 84, 27)
+    edges = cell_edges(crop)
+    np.testing.assert_allclose([e[-1] - e[0] for e in edges], [1.58, 1.68, 1.08], rtol=1e-9)
+    np.testing.assert_allclose([e[0] for e in edges], [0.78, 0.28, 0.56], rtol=1e-9)
+    window = {"x": slice(39, 118), "y": slice(14, 98), "z": slice(3, 30)}
+    np.testing.assert_array_equal(crop["lwc"].values, field["lwc"].isel(window).values)
+    assert "rico122x106x39" in crop.attrs["source"] and "x 39..117" in crop.attrs["source"]
+    cloudy = field["lwc"].values > 0
+    best = cloudy[39:118, 14:98, 3:30].sum()
+    for axis in range(3):
+        for shift in (-1, 1):
+            start = np.array([39, 14, 3])
+            start[axis] += shift
+            other = cloudy[tuple(slice(a, a + n) for a, n in zip(start, (79, 84, 27), strict=True))]
+            assert other.sum() <= best
 
 
 @needs_shared

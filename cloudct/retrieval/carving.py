@@ -16,7 +16,11 @@ Seed paper Sec. 6.1.1: the retrieval starts from the space-carved hull of the cl
    :func:`cloudct.mc.cameras.project`) at the centres of its ``subsamples``^3 sub-cells.
    View v votes for the voxel when one of those points falls on a cloudy pixel, or when
    one falls outside the image or on a masked (NaN) pixel: a view cannot carve away what
-   it does not see.
+   it does not see. With periodic boundaries a view sees every periodic copy of the voxel
+   (shifted by i Lx, j Ly), each along its own line of sight, and a clear line of sight
+   through any copy clears the voxel: the view votes only when every copy it can see
+   passes the test above (a copy wholly outside the image passes; so when no copy is in
+   the image, the view votes).
 4. **Hull.** The voxels with at least k votes form the hull. The default k is every view
    but one (n - 1; n when there are fewer than three views): one view may miss a part of
    the cloud, typically a shadowed cloud base seen from the side, which is no brighter
@@ -24,9 +28,10 @@ Seed paper Sec. 6.1.1: the retrieval starts from the space-carved hull of the cl
 
 5. **Profile** (:func:`extinction_profile`). The seed paper fills the hull with a
    constant. By default the hull is filled in proportion to the faintest excess radiance
-   in which the views see each voxel instead: the soft form of the vote, which puts little
-   extinction where some view through a voxel sees little cloud light (``profile=
-   "constant"`` gives the seed paper's start). On the seed paper's single cloud this start
+   in which the views (with periodic boundaries: the copies the views see) see each voxel
+   instead: the soft form of the vote, which puts little extinction where some line of
+   sight through a voxel sees little cloud light (``profile="constant"`` gives the seed
+   paper's start). On the seed paper's single cloud this start
    has epsilon 0.68 against 1.33 for the constant, each at its fitted mean extinction
    (docs/measurements_and_carving.md).
 
@@ -39,6 +44,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
+from typing import NamedTuple
 
 import numpy as np
 import xarray as xr
@@ -54,13 +60,15 @@ from cloudct.medium import (
 )
 from cloudct.optics import optics_name, to_optical
 from cloudct.retrieval.cloudy_pixels import (
-    box_corners,
     cell_index,
     cloud_masks,
+    medium_bounds,
     pixel_rays,
     project_points,
     ray_box,
     ray_steps,
+    view_copies,
+    wrapped_index,
 )
 
 #: Default number of sub-cells per axis at whose centres a voxel is projected.
@@ -138,14 +146,15 @@ def carve(
         raise ValueError(f"profile must be one of {PROFILES}, got {profile!r}")
 
     masks = cloud_masks(measurements, grid_template, threshold)
-    cams = camera_arrays(scene.cameras)
+    views = _Views(camera_arrays(scene.cameras), view_copies(scene, edges))
     observed = np.isfinite(measurements["radiance"].values)
-    votes = _votes(cams, masks["cloud_mask"].values.astype(bool), observed, edges,
+    votes = _votes(views, masks["cloud_mask"].values.astype(bool), observed, edges,
                    int(subsamples))
     hull = votes >= k
     if profile == "excess" and hull.any():
         excess = measurements["radiance"].values - masks["clear_sky_radiance"].values
-        shape = extinction_profile(_faintest_excess(cams, excess, edges, int(subsamples)), hull)
+        shape = extinction_profile(_faintest_excess(views, excess, edges, int(subsamples)),
+                                   hull)
     else:
         shape = hull.astype(float)
 
@@ -160,7 +169,7 @@ def carve(
     ds["extinction_profile"] = (grid, shape, {
         "units": "1", "long_name": f"{profile} shape of the initial extinction (mean 1 in "
         "the hull)"})
-    ds["hull_silhouette"] = (("view", "row", "col"), _silhouette(cams, hull, edges), {
+    ds["hull_silhouette"] = (("view", "row", "col"), _silhouette(scene, hull, edges), {
         "units": "1", "long_name": "pixel whose centre ray crosses the hull"})
     ds.attrs.update(
         title="cloudct space-carved hull", Conventions="CF-1.8", k=k, views=nview,
@@ -198,27 +207,42 @@ def _ranges(box: np.ndarray) -> str:
     return ", ".join(f"{box[i]:.4g}..{box[i + 1]:.4g}" for i in range(0, len(box) - 1, 2))
 
 
+class _Views(NamedTuple):
+    """The cameras and, per view, the shifts of the periodic copies of the box it can see
+    (:func:`~cloudct.retrieval.cloudy_pixels.view_copies`)."""
+
+    cams: CameraArrays
+    copies: list[np.ndarray]
+
+
 def _layer_pixels(
-    cams: CameraArrays, edges: tuple[np.ndarray, np.ndarray, np.ndarray], nsub: int
-) -> Iterator[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
-    """``(kz, view, inside, row, col)`` for every z layer and view: the pixels seen by the
-    centres of the ``nsub``^3 sub-cells of the layer's voxels, arrays [nx, ny, nsub, nsub,
-    nsub] (``inside``: the point is in the image; row and col are 0 where it is not, so
-    that they index safely). One z layer at a time, to bound the memory."""
+    views: _Views, edges: tuple[np.ndarray, np.ndarray, np.ndarray], nsub: int
+) -> Iterator[tuple[int, int, Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]]]:
+    """``(kz, view, copies)`` for every z layer and view; ``copies`` yields, for each copy
+    of the box the view can see (one with open boundaries), ``(inside, row, col)``: the
+    pixels seen by the centres of the ``nsub``^3 sub-cells of the layer's voxels in that
+    copy, arrays [nx, ny, nsub, nsub, nsub] (``inside``: the point is in the image; row and
+    col are 0 where it is not, so that they index safely). One z layer and one copy at a
+    time, to bound the memory."""
     fractions = (np.arange(nsub) + 0.5) / nsub
     sx, sy, sz = (e[:-1, None] + fractions * np.diff(e)[:, None] for e in edges)
+
+    def copies(v: int, points: np.ndarray) -> Iterator[tuple[np.ndarray, ...]]:
+        for shift in views.copies[v]:
+            row, col = project_points(views.cams, v, points + shift)
+            inside = row >= 0
+            yield inside, np.where(inside, row, 0), np.where(inside, col, 0)
+
     for kz in range(len(sz)):
         # points[i, j, a, b, c]: sub-centre a of x cell i, b of y cell j, c of this layer
         px, py, pz = sx[:, None, :, None, None], sy[None, :, None, :, None], sz[kz]
         points = np.stack(np.broadcast_arrays(px, py, pz[None, None, None, None, :]), axis=-1)
-        for v in range(cams.position.shape[0]):
-            row, col = project_points(cams, v, points)
-            inside = row >= 0
-            yield kz, v, inside, np.where(inside, row, 0), np.where(inside, col, 0)
+        for v in range(len(views.copies)):
+            yield kz, v, copies(v, points)
 
 
 def _votes(
-    cams: CameraArrays,
+    views: _Views,
     cloudy: np.ndarray,
     observed: np.ndarray,
     edges: tuple[np.ndarray, np.ndarray, np.ndarray],
@@ -226,29 +250,33 @@ def _votes(
 ) -> np.ndarray:
     """Votes per voxel, int16[nx, ny, nz] (the rule is in the module docstring)."""
     votes = np.zeros(tuple(len(e) - 1 for e in edges), dtype=np.int16)
-    for kz, v, inside, row, col in _layer_pixels(cams, edges, nsub):
-        vote = ~inside | cloudy[v, row, col] | ~observed[v, row, col]
-        votes[:, :, kz] += vote.any(axis=(2, 3, 4))
+    for kz, v, copies in _layer_pixels(views, edges, nsub):
+        vote = np.ones(votes.shape[:2], dtype=bool)
+        for inside, row, col in copies:
+            vote &= (~inside | cloudy[v, row, col] | ~observed[v, row, col]).any(axis=(2, 3, 4))
+        votes[:, :, kz] += vote
     return votes
 
 
 def _faintest_excess(
-    cams: CameraArrays,
+    views: _Views,
     excess: np.ndarray,
     edges: tuple[np.ndarray, np.ndarray, np.ndarray],
     nsub: int,
 ) -> np.ndarray:
-    """float64[nx, ny, nz]: the smallest, over the views that see a voxel, of the view's
-    excess radiance averaged over the (non-NaN) pixels of the voxel's sub-cell centres;
-    +inf where no view sees the voxel."""
+    """float64[nx, ny, nz]: the smallest, over the views that see a voxel and the periodic
+    copies of it they see, of the excess radiance averaged over the (non-NaN) pixels of the
+    copy's sub-cell centres; +inf where no view sees the voxel."""
     faintest = np.full(tuple(len(e) - 1 for e in edges), np.inf)
-    for kz, v, inside, row, col in _layer_pixels(cams, edges, nsub):
-        pixel = excess[v, row, col]
-        seen = inside & np.isfinite(pixel)
-        count = seen.sum(axis=(2, 3, 4))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mean = np.where(seen, pixel, 0.0).sum(axis=(2, 3, 4)) / count
-        faintest[:, :, kz] = np.minimum(faintest[:, :, kz], np.where(count > 0, mean, np.inf))
+    for kz, v, copies in _layer_pixels(views, edges, nsub):
+        for inside, row, col in copies:
+            pixel = excess[v, row, col]
+            seen = inside & np.isfinite(pixel)
+            count = seen.sum(axis=(2, 3, 4))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                mean = np.where(seen, pixel, 0.0).sum(axis=(2, 3, 4)) / count
+            faintest[:, :, kz] = np.minimum(faintest[:, :, kz],
+                                            np.where(count > 0, mean, np.inf))
     return faintest
 
 
@@ -278,11 +306,15 @@ def extinction_profile(faintest: np.ndarray, hull: np.ndarray) -> np.ndarray:
 
 
 def _silhouette(
-    cams: CameraArrays, hull: np.ndarray, edges: tuple[np.ndarray, np.ndarray, np.ndarray]
+    scene: Scene, hull: np.ndarray, edges: tuple[np.ndarray, np.ndarray, np.ndarray]
 ) -> np.ndarray:
     """int8[view, row, col]: 1 where the pixel's centre ray crosses a hull voxel (marched
-    at steps of a quarter of the smallest cell size)."""
-    lo, hi = box_corners(edges)
+    at steps of a quarter of the smallest cell size; through the whole slab, wrapped
+    across the side faces, with periodic boundaries)."""
+    cams = camera_arrays(scene.cameras)
+    lo, hi = medium_bounds(scene, edges)
+    index_along = [wrapped_index if scene.periodic and axis < 2 else cell_index
+                   for axis in range(3)]
     step = 0.25 * min(float(np.diff(e).min()) for e in edges)
     out = np.zeros((cams.position.shape[0], cams.nrows, cams.ncols), dtype=np.int8)
     for v in range(out.shape[0]):
@@ -292,7 +324,7 @@ def _silhouette(
         hit = np.zeros(t_in.shape, dtype=bool)
         for live, t, _ in ray_steps(t_in, t_out, step):
             point = origin + t[:, None] * rays[live]
-            index = tuple(cell_index(e, point[:, a]) for a, e in enumerate(edges))
+            index = tuple(index_along[a](e, point[:, a]) for a, e in enumerate(edges))
             hit[live] |= hull[index]
         out[v] = hit
     return out

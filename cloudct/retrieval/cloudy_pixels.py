@@ -1,6 +1,7 @@
 """Which pixels see cloud: each pixel's clear-sky background and the cloudy-pixel rule of
 space carving (:mod:`cloudct.retrieval.carving`, steps 1 and 2), with the pinhole
-projection and the pixel rays they share with the carving's votes."""
+projection, the pixel rays and the periodic copies of the box that they share with the
+carving's votes."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import numpy as np
 import xarray as xr
 
 from cloudct.mc.cameras import CameraArrays, camera_arrays
-from cloudct.mc.scene import Scene, check_scene
+from cloudct.mc.scene import Scene, check_scene, periodic_copy_ranges
 from cloudct.medium import (
     cell_edges,
     validate_medium,
@@ -104,6 +105,34 @@ def box_corners(edges: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray]:
     return np.array([e[0] for e in edges]), np.array([e[-1] for e in edges])
 
 
+def medium_bounds(scene: Scene, edges: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """The corners of what the cameras look into: the box, or with periodic boundaries the
+    whole slab (x and y unbounded)."""
+    lo, hi = box_corners(edges)
+    if scene.periodic:
+        lo[:2], hi[:2] = -np.inf, np.inf
+    return lo, hi
+
+
+def wrapped_index(edges: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Index of the cell of ``edges`` holding each value, the axis being periodic with the
+    grid's length (the horizontal axes under periodic boundaries)."""
+    return cell_index(edges, edges[0] + np.mod(values - edges[0], edges[-1] - edges[0]))
+
+
+def view_copies(scene: Scene, edges: tuple[np.ndarray, ...]) -> list[np.ndarray]:
+    """Per view, the horizontal shifts (i Lx, j Ly, 0) [km] of the periodic copies of the
+    box that the view can see (:func:`cloudct.mc.scene.periodic_copy_ranges`),
+    float64[ncopy, 3]; the box itself, (0, 0, 0), with open boundaries."""
+    lengths = [e[-1] - e[0] for e in edges[:2]]
+    shifts = []
+    for i0, i1, j0, j1 in periodic_copy_ranges(scene, tuple(edges)):
+        i, j = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1), indexing="ij")
+        shifts.append(np.stack([i.ravel() * lengths[0], j.ravel() * lengths[1],
+                                np.zeros(i.size)], axis=1))
+    return shifts
+
+
 # ---------------------------------------------------------------------------------------
 # Clear-sky background and cloudy pixels
 # ---------------------------------------------------------------------------------------
@@ -145,9 +174,7 @@ def clear_sky_background(
         tau_above = tau_below[-1] - np.interp(z, z_edges, tau_below)
         return np.exp(-tau_above / mu0)
 
-    lo, hi = box_corners(edges)
-    if scene.periodic:
-        lo[:2], hi[:2] = -np.inf, np.inf
+    lo, hi = medium_bounds(scene, edges)
     step = 0.5 * float(np.diff(z_edges).min())
     cams = camera_arrays(scene.cameras)
     out = np.zeros((len(scene.cameras), cams.nrows, cams.ncols))
@@ -213,9 +240,7 @@ def cloud_masks(
     scene = Scene.from_dataset(measurements)
     background = clear_sky_background(scene, template)
     excess = radiance - background
-    lo, hi = box_corners(cell_edges(template))
-    if scene.periodic:
-        lo[:2], hi[:2] = -np.inf, np.inf
+    lo, hi = medium_bounds(scene, cell_edges(template))
     cams = camera_arrays(scene.cameras)
     signal = np.zeros(radiance.shape[0])
     mask = np.zeros(radiance.shape, dtype=bool)
