@@ -2,7 +2,8 @@
 
 The medium is the seed paper's cloud field (Table 1: 79 x 84 x 27 voxels of 20 x 20 x 40
 m), the window of the bundled rico122x106x39 with the most cloudy cells
-(`cloudct.les.seed_paper_cloud_field`), with the default optics; the scene is the `cloud-field` preset
+(`cloudct.les.seed_paper_cloud_field`), with the default optics; the scene is the
+`cloud-field` preset
 (nine 86 x 86 cameras, a ring at 33 degrees, 2.16 km from the box centre, sun at the
 zenith, open boundaries: a window of an LES domain is not periodic). The commands run are
 those a user types (printed, and stored in the results):
