@@ -12,27 +12,24 @@ those a user types (printed, and stored in the results):
     cloudct synth truth.nc --scene scene.nc --photons P -o measurements.nc
     cloudct carve measurements.nc --medium truth.nc -o init.nc --figure hull.png
     cloudct retrieve measurements.nc --init init.nc --truth truth.nc --time-limit S \
-        [--workers 2] -o result.nc
-    cloudct report result.nc --truth truth.nc --measurements measurements.nc -o report
+        [--workers 2] [OPTIONS] -o NAME.nc
+    cloudct report NAME.nc --truth truth.nc --measurements measurements.nc -o NAME_report
 
-    python benchmarks/cloud_field.py --minutes 60 [--workers 2] [--out DIR]
+    python benchmarks/cloud_field.py --minutes 60 [--workers 2] [--name NAME] [--out DIR]
+        [-- OPTIONS of cloudct retrieve]
 
-Epsilon and delta over time are in result.nc (log_seconds, log_epsilon, log_delta) and in
-DIR/cloud_field.json.
+Epsilon and delta over time are in NAME.nc (log_seconds, log_epsilon, log_delta) and in
+DIR/NAME.json (NAME: cloud_field by default).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import shlex
-import time
 from pathlib import Path
 
-import numpy as np
-import xarray as xr
+from common import error_over_time, run_command
 
-from cloudct.cli import main as cloudct
 from cloudct.les import seed_paper_cloud_field
 from cloudct.medium import save_medium
 from cloudct.optics import to_optical
@@ -40,66 +37,45 @@ from cloudct.optics import to_optical
 HERE = Path(__file__).resolve().parent
 
 
-def run(argv: list[str], log: list[dict]) -> None:
-    """Run one cloudct command, timing it; stop on failure."""
-    print("$ cloudct " + shlex.join(argv), flush=True)
-    start = time.perf_counter()
-    status = cloudct(argv)
-    log.append({"command": "cloudct " + shlex.join(argv), "seconds": time.perf_counter() - start})
-    if status != 0:
-        raise SystemExit(f"cloudct {argv[0]} failed with status {status}")
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--minutes", type=float, default=60.0, help="retrieval time limit")
     parser.add_argument("--measurement-photons", type=int, default=10_000_000)
     parser.add_argument("--workers", type=int, help="retrieve on a local Dask cluster")
+    parser.add_argument("--name", default="cloud_field", help="of the result files")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "cloud_field")
+    parser.add_argument("retrieve_options", nargs=argparse.REMAINDER,
+                        help="after --: more options of cloudct retrieve (e.g. --config FILE)")
     args = parser.parse_args()
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     truth = to_optical(seed_paper_cloud_field())
     save_medium(truth, out / "truth.nc", overwrite=True)
     f = {name: str(out / name) for name in ("truth.nc", "scene.nc", "measurements.nc",
-                                            "init.nc", "result.nc")}
+                                            "init.nc")}
+    result = str(out / f"{args.name}.nc")
     log: list[dict] = []
     if not (out / "measurements.nc").exists():
-        run(["scene", f["truth.nc"], "--preset", "cloud-field", "-o", f["scene.nc"],
-             "--figure", str(out / "scene.png"), "--overwrite"], log)
-        run(["synth", f["truth.nc"], "--scene", f["scene.nc"], "--photons",
-             str(args.measurement_photons), "-o", f["measurements.nc"]], log)
+        run_command(["scene", f["truth.nc"], "--preset", "cloud-field", "-o", f["scene.nc"],
+                     "--figure", str(out / "scene.png"), "--overwrite"], log)
+        run_command(["synth", f["truth.nc"], "--scene", f["scene.nc"], "--photons",
+                     str(args.measurement_photons), "-o", f["measurements.nc"]], log)
     if not (out / "init.nc").exists():
-        run(["carve", f["measurements.nc"], "--medium", f["truth.nc"], "-o", f["init.nc"],
-             "--figure", str(out / "hull.png")], log)
+        run_command(["carve", f["measurements.nc"], "--medium", f["truth.nc"], "-o",
+                     f["init.nc"], "--figure", str(out / "hull.png")], log)
     retrieve = ["retrieve", f["measurements.nc"], "--init", f["init.nc"], "--truth",
                 f["truth.nc"], "--time-limit", str(60 * args.minutes), "--iterations",
-                "100000", "-o", f["result.nc"], "--overwrite"]
+                "100000", "-o", result, "--overwrite"]
     if args.workers:
         retrieve += ["--workers", str(args.workers)]
-    run(retrieve, log)
-    run(["report", f["result.nc"], "--truth", f["truth.nc"], "--measurements",
-         f["measurements.nc"], "-o", str(out / "report")], log)
+    retrieve += [a for a in args.retrieve_options if a != "--"]
+    run_command(retrieve, log)
+    run_command(["report", result, "--truth", f["truth.nc"], "--measurements",
+                 f["measurements.nc"], "-o", str(out / f"{args.name}_report")], log)
 
-    result = xr.load_dataset(out / "result.nc")
-    seconds = result["log_seconds"].values
-    marks = {}
-    for minutes in (5, 15, 30, 60):
-        done = np.flatnonzero(seconds <= 60 * minutes)
-        if done.size:
-            i = done[-1]
-            marks[f"{minutes} min"] = {"iteration": int(i + 1),
-                                       "epsilon": float(result["log_epsilon"].values[i]),
-                                       "delta": float(result["log_delta"].values[i])}
-    summary = {
-        "grid": list(truth["cloud_extinction"].shape), "workers": args.workers or 0,
-        "iterations": int(seconds.size), "seconds": float(seconds[-1]),
-        "final": {"epsilon": float(result["log_epsilon"].values[-1]),
-                  "delta": float(result["log_delta"].values[-1])},
-        "over_time": marks, "commands": log,
-    }
-    name = f"cloud_field{'_workers' + str(args.workers) if args.workers else ''}.json"
-    (out / name).write_text(json.dumps(summary, indent=1) + "\n")
+    summary = {"grid": list(truth["cloud_extinction"].shape), "workers": args.workers or 0,
+               **error_over_time(result), "commands": log}
+    (out / f"{args.name}.json").write_text(json.dumps(summary, indent=1) + "\n")
     print(json.dumps(summary, indent=1))
 
 

@@ -1,15 +1,20 @@
-"""Pieces the benchmark scripts share: the run header of a result file, Markdown tables and
-the writing of results."""
+"""Pieces the benchmark scripts share: the run header of a result file, Markdown tables,
+the writing of results, and runs of cloudct commands with the error of a retrieval over
+time."""
 
 from __future__ import annotations
 
 import json
 import os
 import platform
+import shlex
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+
+import numpy as np
+import xarray as xr
 
 
 def run_header() -> dict:
@@ -40,3 +45,35 @@ def write_json_and_markdown(result: dict, output: str, markdown: Callable[[dict]
     out.with_suffix(".md").write_text(markdown(result))
     print(markdown(result))
     print(f"wrote {out.with_suffix('.json')} and {out.with_suffix('.md')}")
+
+
+def run_command(argv: list[str], log: list[dict]) -> None:
+    """Run one cloudct command as a user types it (printed), time it into ``log``; stop on
+    failure."""
+    from cloudct.cli import main as cloudct
+
+    print("$ cloudct " + shlex.join(argv), flush=True)
+    start = time.perf_counter()
+    status = cloudct(argv)
+    log.append({"command": "cloudct " + shlex.join(argv), "seconds": time.perf_counter() - start})
+    if status != 0:
+        raise SystemExit(f"cloudct {argv[0]} failed with status {status}")
+
+
+def error_over_time(result: str | Path, minutes=(5, 15, 30, 60)) -> dict:
+    """Iterations, epsilon and delta of a retrieval result file at each of ``minutes``
+    (the last iteration done by then), and at its end."""
+    ds = xr.load_dataset(result)
+    seconds = ds["log_seconds"].values
+    marks = {}
+    for m in minutes:
+        done = np.flatnonzero(seconds <= 60 * m)
+        if done.size:
+            i = done[-1]
+            marks[f"{m:g} min"] = {"iteration": int(i + 1),
+                                   "epsilon": float(ds["log_epsilon"].values[i]),
+                                   "delta": float(ds["log_delta"].values[i])}
+    return {"iterations": int(seconds.size), "seconds": float(seconds[-1]),
+            "final": {"epsilon": float(ds["log_epsilon"].values[-1]),
+                      "delta": float(ds["log_delta"].values[-1])},
+            "over_time": marks}

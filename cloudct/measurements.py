@@ -18,6 +18,10 @@ boundaries as attributes) with, in addition:
   ``noise_seed``), the render's ``photons`` and ``seed``, and the box and shape of the
   medium's grid (``medium_box`` = x_min, x_max, y_min, y_max, z_min, z_max [km];
   ``medium_shape`` = nx, ny, nz) so that a retrieval grid can be checked against them.
+* for a medium with a non-exponential transmittance (docs/transmittance.md), its family
+  (attribute ``transmittance``) and mode (variable ``transmittance_mode``: a scalar, or over
+  the medium's x, y, z with their coordinates), which ``cloudct retrieve --transmittance
+  medium`` retrieves under (:func:`measured_transmittance`).
 
 Noise model (photon-transfer form, as for a CCD/CMOS sensor): a pixel of radiance L
 collects on average N = gain * L photo-electrons, with gain = ``electrons`` /
@@ -37,6 +41,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,7 +50,14 @@ import xarray as xr
 from cloudct.mc.cameras import cameras_from_dataset
 from cloudct.mc.render import RADIANCE_UNITS, render
 from cloudct.mc.scene import Scene, single_cloud_scene
-from cloudct.medium import cell_edges, validate_medium
+from cloudct.medium import (
+    MediumError,
+    cell_edges,
+    check_transmittance,
+    transmittance_model,
+    validate_medium,
+    with_transmittance,
+)
 from cloudct.netcdf import load_netcdf, save_netcdf
 from cloudct.optics import to_optical
 from cloudct.physics.mie import DEFAULT_WAVELENGTH
@@ -202,7 +214,41 @@ def synthesize_measurements(
         medium_source=str(medium.attrs.get("source", "")),
         **_noise_attrs(noise, noise_seed),
     )
+    family, mode = transmittance_model(medium)
+    if mode is not None:
+        ds.attrs["transmittance"] = family
+        ds["transmittance_mode"] = mode
     return ds
+
+
+def measured_transmittance(measurements: xr.Dataset) -> tuple[str, xr.DataArray | None]:
+    """The transmittance family the measurements were made under and its mode (a scalar or
+    a field over the medium's x, y, z): ``("exponential", None)`` where they record none."""
+    family = str(measurements.attrs.get("transmittance", "exponential"))
+    if family != "exponential" and "transmittance_mode" not in measurements:
+        raise MeasurementError(f"the measurements' transmittance {family!r} has no "
+                               "transmittance_mode variable")
+    return family, (None if family == "exponential" else measurements["transmittance_mode"])
+
+
+def assumed_transmittance(initial: xr.Dataset, measurements: xr.Dataset, assumption: str
+                          ) -> xr.Dataset:
+    """A retrieval's initial medium under its transmittance ``assumption``: ``"exponential"``
+    drops any model the medium carries (with a warning), ``"medium"`` gives it the
+    measurements' family and mode (:func:`measured_transmittance`), a field of which must
+    lie on the medium's grid."""
+    if assumption == "exponential":
+        if transmittance_model(initial)[0] != "exponential":
+            warnings.warn("the initial medium's non-exponential transmittance is dropped: the "
+                          "retrieval assumes the exponential (transmittance 'medium' keeps "
+                          "the measurements' model)", stacklevel=3)
+        return with_transmittance(initial, "exponential")
+    family, mode = measured_transmittance(measurements)
+    try:
+        return with_transmittance(initial, family, mode)
+    except MediumError as err:
+        raise ValueError(f"the measurements' transmittance mode does not fit the initial "
+                         f"medium: {err}") from err
 
 
 def _noise_attrs(noise: NoiseModel | None, noise_seed: int) -> dict:
@@ -241,7 +287,8 @@ def validate_measurements(ds: xr.Dataset) -> None:
     ``nrows``, ``ncols``) agreeing with the image size; the scene attributes
     (``sun_zenith``, ``sun_azimuth``, ``boundary``). ``radiance_noise_std`` and
     ``radiance_std_error``, when present, must have the images' shape and be finite and
-    >= 0; ``wavelength``, when present, must be positive.
+    >= 0; ``wavelength``, when present, must be positive; a recorded transmittance model
+    (``transmittance``, ``transmittance_mode``) must be one a medium may hold.
     """
     if "radiance" not in ds:
         raise MeasurementError("measurements have no 'radiance' variable")
@@ -283,6 +330,10 @@ def validate_measurements(ds: xr.Dataset) -> None:
                 raise MeasurementError(f"{name} must be finite and >= 0")
     if "wavelength" in ds.attrs and not float(ds.attrs["wavelength"]) > 0.0:
         raise MeasurementError(f"wavelength must be positive, got {ds.attrs['wavelength']}")
+    try:
+        check_transmittance(ds)
+    except MediumError as err:
+        raise MeasurementError(f"the recorded transmittance model: {err}") from err
 
 
 def save_measurements(ds: xr.Dataset, path: str | os.PathLike, overwrite: bool = False) -> None:

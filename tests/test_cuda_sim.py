@@ -3,7 +3,9 @@
 1. CUDA simulator (``NUMBA_ENABLE_CUDASIM=1``, set in a subprocess before numba is imported
    so that the rest of the suite stays on the normal CPU path). The simulated kernels
    (:mod:`cloudct.mc.cuda_kernels`) run the same compiled ``@njit`` per-photon routines as
-   the CPU kernels, with the CPU's photon indexing and random streams. Expected agreement:
+   the CPU kernels, with the CPU's photon indexing and random streams (renders and the
+   score-function gradient also of a medium under the power-law transmittance, whose
+   gradient walks each flight twice). Expected agreement:
 
    - per photon (RESIDUAL pass: path sum and vertex count; every pixel sample): **bitwise**,
      since each photon draws the same stream and runs the same code;
@@ -54,12 +56,14 @@ import numpy as np
 from cloudct.mc.cameras import Camera
 from cloudct.mc.scene import Scene
 from cloudct.mc.sun import Sun
-from cloudct.medium import optical_medium
+from cloudct.medium import optical_medium, with_transmittance
 
 axis = 0.05 + 0.1 * np.arange(4)
 ext = np.random.default_rng(1).uniform(2.0, 12.0, (4, 4, 4))
 ext[0] = 0.0
 medium = optical_medium(axis, axis, axis + 0.5, ext)
+# the power law of unresolved variability, shapes a = 0.5, 2 and inf (docs/transmittance.md)
+power_law = with_transmittance(medium, "gamma", np.resize([0.5, 2.0, np.inf], ext.shape))
 cams = [Camera((0.2, 0.2, 3.0), (0.2, 0.2, 0.7), (0, 1, 0), fov=20.0, nrows=6, ncols=6),
         Camera((1.5, 0.2, 2.5), (0.2, 0.2, 0.7), (0, 0, 1), fov=20.0, nrows=6, ncols=6)]
 scenes = {"open": Scene(cams, Sun(30.0, 20.0), "open", 0.3),
@@ -99,10 +103,18 @@ for tpb in (1, 32):
             case["events"] = [runs[0][1]["events"], runs[1][1]["events"]]
             case["backend"] = runs[1][1]["backend"]
             out[f"{label}/{name}/tpb{tpb}"] = case
+    for label, method, n in (("powerlaw", "forward", 256), ("powerlaw-backward", "backward", 8)):
+        runs = [render_batches(power_law, scenes["open"], photons=n, batches=4, method=method,
+                               progress=False, backend=b) for b in ("cpu", "cuda")]
+        case = compare(runs[0][0], runs[1][0])
+        case["events"] = [runs[0][1]["events"], runs[1][1]["events"]]
+        case["backend"] = runs[1][1]["backend"]
+        out[f"{label}/open/tpb{tpb}"] = case
     for sort in (False, True):
         ck.SORT_PATHS = sort
-        for label, aim in (("gradient", None), ("gradient-aimed", 0.3)):
-            runs = [score_function_gradient(medium, scenes["open"], residual, photons=256,
+        for label, aim, which in (("gradient", None, medium), ("gradient-aimed", 0.3, medium),
+                                  ("gradient-powerlaw", None, power_law)):
+            runs = [score_function_gradient(which, scenes["open"], residual, photons=256,
                                             batches=4, aim_fraction=aim, progress=False,
                                             backend=b)
                     for b in ("cpu", "cuda")]
@@ -383,7 +395,8 @@ def test_same_photon_same_path(simulated, key):
 @pytest.mark.parametrize(
     "key",
     [f"{m}/{s}/tpb1" for m in ("forward", "aimed", "backward") for s in ("open", "periodic")]
-    + ["gradient/sort0/tpb1", "gradient-aimed/sort0/tpb1"],
+    + ["powerlaw/open/tpb1", "powerlaw-backward/open/tpb1"]
+    + ["gradient/sort0/tpb1", "gradient-aimed/sort0/tpb1", "gradient-powerlaw/sort0/tpb1"],
 )
 def test_sequential_threads_match_cpu_bitwise(simulated, key):
     """One thread per block: the CPU's summation order, so bitwise equal batches."""
@@ -396,7 +409,8 @@ def test_sequential_threads_match_cpu_bitwise(simulated, key):
 @pytest.mark.parametrize(
     "key",
     [f"{m}/{s}/tpb32" for m in ("forward", "aimed", "backward") for s in ("open", "periodic")]
-    + [f"{g}/{c}" for g in ("gradient", "gradient-aimed")
+    + ["powerlaw/open/tpb32", "powerlaw-backward/open/tpb32"]
+    + [f"{g}/{c}" for g in ("gradient", "gradient-aimed", "gradient-powerlaw")
        for c in ("sort1/tpb1", "sort0/tpb32", "sort1/tpb32")],
 )
 def test_reordered_threads_match_cpu_to_rounding(simulated, key):

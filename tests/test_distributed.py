@@ -1,8 +1,9 @@
 """Scale-out over Dask: a local cluster of 2 single-threaded worker processes.
 
-- Forward and backward images, score-function gradients, loss gradients, retrieval steps
-  and recycled evaluations equal the single-process results for the same seeds BITWISE
-  (np.array_equal), whatever the split into tasks.
+- Forward and backward images, score-function, DRT and sample-matching gradients (pixels
+  uniform or drawn by residual), loss gradients, retrieval steps (score function, and the
+  default sample matching) and recycled evaluations equal the single-process results for the
+  same seeds BITWISE (np.array_equal), whatever the split into tasks.
 - With recycling the paths stay on the workers: the parts do not move between recycled
   iterations and only media, residuals and results come back.
 - A worker killed in the middle of a call: the task is re-run elsewhere and the result is
@@ -40,7 +41,11 @@ from cloudct.distributed import (  # noqa: E402
 )
 from cloudct.distributed.batches import BatchPart, assemble  # noqa: E402
 from cloudct.distributed.recycling import record_part  # noqa: E402
-from cloudct.mc.gradient import score_function_gradient  # noqa: E402
+from cloudct.mc.gradient import (  # noqa: E402
+    drt_gradient,
+    sample_matching_gradient,
+    score_function_gradient,
+)
 from cloudct.mc.render import render  # noqa: E402
 from cloudct.recycling import FixedPeriod, Recycler  # noqa: E402
 from cloudct.retrieval.loop import Retrieval, RetrievalConfig  # noqa: E402
@@ -97,14 +102,16 @@ def test_gradients_loss_and_retrieval_equal_the_single_process_ones_bitwise(clie
     assert a.loss == b.loss and same(a.gradient, b.gradient)
     assert same(a.gradient_std_error, b.gradient_std_error)
 
-    config = RetrievalConfig(iterations=2, photons=8_000, stages=(1,), stage_photons=(1.0,),
-                             estimator=("score",))  # the estimator workers trace
-    one = Retrieval(measured, guess, config)
-    one.run(progress=False)
-    many = Retrieval(measured, guess, config, client=client)
-    many.run(progress=False)
-    assert same(one.state.extinction, many.state.extinction)
-    assert one.state.log["loss"] == many.state.log["loss"]
+    for estimator in (("score",), None):  # None: the default, sample matching
+        config = RetrievalConfig(iterations=2, photons=8_000, stages=(1,),
+                                 stage_photons=(1.0,), estimator=estimator)
+        one = Retrieval(measured, guess, config)
+        one.run(progress=False)
+        many = Retrieval(measured, guess, config, client=client)
+        many.run(progress=False)
+        assert same(one.state.extinction, many.state.extinction)
+        assert one.state.log["loss"] == many.state.log["loss"]
+    assert config.estimator == ("sm",) and config.pixel_sampling == "residual"
 
     # with recycling the stores live on the workers (a DistributedRecycler), same iterates
     config = RetrievalConfig(iterations=3, photons=8_000, stages=(1,), stage_photons=(1.0,),
@@ -117,6 +124,29 @@ def test_gradients_loss_and_retrieval_equal_the_single_process_ones_bitwise(clie
     assert same(one.state.extinction, many.state.extinction)
     assert one.state.log["loss"] == many.state.log["loss"]
     assert one.state.log["resampled"] == [1.0, 0.0, 1.0]
+
+
+@pytest.mark.parametrize("estimate, sampling", [
+    (drt_gradient, "uniform"), (drt_gradient, "residual"),
+    (sample_matching_gradient, "uniform"), (sample_matching_gradient, "residual"),
+])
+def test_camera_side_gradients_equal_the_single_process_ones_bitwise(client, estimate,
+                                                                      sampling):
+    """16 samples per pixel and batch: uniform pixel sampling traces them in 16 rounds of
+    every pixel, which the workers must repeat (one batch per kernel call) to be bitwise."""
+    medium, scene = gradient_medium(), gradient_scene()
+    weights = pixel_weights()
+    run = dict(samples_per_pixel=128, seed=4, batches=8, pixel_sampling=sampling)
+    ref = estimate(medium, scene, weights, **run)
+    for where in (executor(client), DaskExecutor(client, batches_per_task=3)):
+        out = estimate(medium, scene, weights, **run, executor=where)
+        assert same(out[0], ref[0]) and same(out[1], ref[1])
+        for key in ("photons", "events", "pixel_sampling", "backend"):
+            assert out[2][key] == ref[2][key], key
+        assert out[2]["workers"] == 2
+        # back: a float64 gradient per batch and voxel, and a few bytes per batch and task
+        extra = out[2]["bytes_from_workers"] - 8 * ref[0].size * 8
+        assert 0 < extra < 100 * out[2]["tasks"]
 
 
 def test_recycled_evaluations_equal_the_single_process_ones_and_paths_stay(client):
@@ -249,9 +279,11 @@ import numpy as np
 from numba import config
 assert config.ENABLE_CUDASIM
 import cloudct.mc.cuda_kernels as ck
-from cloudct.distributed.batches import assemble, backward_task, forward_task
+from cloudct.distributed.batches import (assemble, backward_task, camera_gradient_task,
+                                        forward_task)
 from cloudct.mc.forward import GRADIENT, RENDER
-from cloudct.mc.gradient import score_function_gradient
+from cloudct.mc.gradient import drt_gradient, score_function_gradient
+from cloudct.mc.pixel_sampling import pixel_table
 from cloudct.mc.render import kernel_inputs, render_batches
 from test_score_gradient import gradient_medium, gradient_scene, pixel_weights
 
@@ -280,14 +312,24 @@ parts = [forward_task(k, "cuda", 100, 0.95, 0, per_batch, GRADIENT, w, s, 3) for
 values, _ = assemble(parts, batches)
 out["gradient"] = float(np.abs((values / per_batch).mean(axis=0) - mean).max() /
                         np.abs(mean).max())
+k0 = kernel_inputs(medium, scene, aim_fraction=0.0)
+for sampling, per_batch in (("uniform", 2), ("residual", 2 * w.size)):  # 8 samples per pixel
+    mean = drt_gradient(medium, scene, w, samples_per_pixel=8, batches=4,
+                        pixel_sampling=sampling)[0]
+    pixels = (w, pixel_table(w, sampling))
+    parts = [camera_gradient_task(k0, "cuda", 100, 0.95, 0, per_batch, 4, (0, 1, False, False),
+                                  pixels, s, n) for s, n in ((0, 1), (1, 3))]
+    values, _ = assemble(parts, 4)
+    out[f"drt-{sampling}"] = bool(np.array_equal((values / per_batch).mean(axis=0), mean))
 print("RESULT " + json.dumps(out))
 """
 
 
 def test_gpu_worker_tasks_under_the_cuda_simulator():
     """The tasks of a GPU worker (backend "cuda": the CUDA launchers run on a range of
-    batches, results copied back by ``run_range``) give the CPU's per-batch arrays, checked
-    with numba-cuda's simulator (no GPU here)."""
+    batches, or one batch at a time for DRT with every pixel, results copied back by
+    ``run_range``) give the CPU's per-batch arrays, checked with numba-cuda's simulator (no
+    GPU here)."""
     pytest.importorskip("numba_cuda")
     import subprocess
     from pathlib import Path
@@ -303,6 +345,7 @@ def test_gpu_worker_tasks_under_the_cuda_simulator():
     out = json.loads(run.stdout.split("RESULT ", 1)[1])
     assert out["backends"] == ["cuda"]
     assert out["forward"] and out["backward"]
+    assert out["drt-uniform"] and out["drt-residual"]
     assert out["gradient"] < 1e-12  # the simulator's gradient pass adds in another order
 
 
@@ -338,12 +381,12 @@ def test_cli_render_and_retrieve_on_workers(client, tmp_path):
     save_medium(scaled(medium, 0.8), tmp_path / "init.nc")
     common = ["retrieve", str(tmp_path / "meas.nc"), "--init", str(tmp_path / "init.nc"),
               "--iterations", "2", "--photons", "4000"]
-    # workers trace the score function: with a scheduler it is the default
-    assert main([*common, "-o", str(tmp_path / "r1.nc"), "--estimator", "score"]) == 0
+    # the default estimator (sample matching) on the workers
+    assert main([*common, "-o", str(tmp_path / "r1.nc")]) == 0
     assert main([*common, "-o", str(tmp_path / "r2.nc"), "--scheduler", address]) == 0
     r1, r2 = xr.load_dataset(tmp_path / "r1.nc"), xr.load_dataset(tmp_path / "r2.nc")
     assert same(r1.cloud_extinction.values, r2.cloud_extinction.values)
-    assert set(json.loads(r2.attrs["config"])["estimator"]) == {"score"}
+    assert set(json.loads(r2.attrs["config"])["estimator"]) == {"sm"}
     assert same(r1.log_loss.values, r2.log_loss.values)
 
 

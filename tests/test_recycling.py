@@ -402,10 +402,11 @@ def test_distance_limited_march_gives_the_optical_depth_between_two_points():
     d = d / np.linalg.norm(d)
     ix, iy, iz = 0, 1, 1
     trail = new_trail(64)
-    status, *end, tau, distance = march(
+    status, *end, tau, distance, scale = march(
         k.grid, *p, *d, ix, iy, iz, INF, False, None, 0.0, 0.37, trail
     )
     assert status == 0
+    assert scale == 1.0  # the exponential: the deposits are the derivatives
     np.testing.assert_allclose(end[:3], p + 0.37 * d, atol=1e-14)
     assert distance == pytest.approx(0.37, rel=1e-14)
     assert trail.count[0] > 3

@@ -545,9 +545,6 @@ def test_estimator_settings_are_checked_and_fingerprinted_only_where_they_act(me
         RetrievalConfig(averaging="median")
     with pytest.raises(ValueError, match="averaging_decay"):
         RetrievalConfig(averaging="ema", averaging_decay=1.0)
-    with pytest.raises(ValueError, match="use the estimator 'score' with a client"):
-        Retrieval(measurements, initial_guess(), RetrievalConfig(estimator=("sm",)),
-                  client="tcp://127.0.0.1:1")
 
 
 @pytest.mark.parametrize("estimator, sampling", [(("drt", "sm"), "residual"),

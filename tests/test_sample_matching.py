@@ -161,7 +161,7 @@ def test_gradient_estimate_chooses_the_estimator_by_name():
     with pytest.raises(ValueError, match="camera-side"):
         gradient_estimate(medium, scene, r, estimator="score", paths=64,
                           pixel_sampling="residual")
-    with pytest.raises(ValueError, match="no executor"):
+    with pytest.raises(TypeError, match="BatchExecutor"):
         gradient_estimate(medium, scene, r, estimator="drt", paths=64, executor=object())
 
 

@@ -15,7 +15,7 @@ from numba import njit
 from test_forward import uniform_axis
 
 from cloudct.mc.cameras import Camera
-from cloudct.mc.gradient import score_function_gradient
+from cloudct.mc.gradient import drt_gradient, sample_matching_gradient
 from cloudct.mc.render import render
 from cloudct.mc.scene import Scene
 from cloudct.mc.sensors import domain_means
@@ -99,8 +99,8 @@ def _first_flights(grid, uniforms, evaluate):
         y = grid.y_edges[0] + (grid.y_edges[-1] - grid.y_edges[0]) * uniforms[k, 1]
         ix, iy, iz = locate_point(grid, x, y, top, 0.0, 0.0, -1.0)
         target = INF if evaluate else -math.log(1.0 - uniforms[k, 2])
-        status, _, _, _, _, _, _, tau, _ = march(grid, x, y, top, 0.0, 0.0, -1.0, ix, iy, iz,
-                                                 target, False)
+        status, _, _, _, _, _, _, tau, _, _ = march(grid, x, y, top, 0.0, 0.0, -1.0, ix, iy, iz,
+                                                    target, False)
         if evaluate:
             out[k] = math.exp(-tau)
         else:
@@ -164,9 +164,10 @@ def test_bad_modes_and_unsupported_estimators_are_refused():
         validate_medium(slab(family="fractal", mode=1.0))
     scene = Scene([Camera((0.5, 0.5, 3.0), (0.5, 0.5, 0.5), (0, 1, 0), fov=30, nrows=4,
                           ncols=4)], Sun(0.0, 0.0), "periodic")
-    with pytest.raises(ValueError, match="non-exponential transmittance"):
-        score_function_gradient(slab(family="gamma", mode=2.0), scene, np.ones((1, 4, 4)),
-                                photons=100, batches=2, progress=False)
+    for estimator in (drt_gradient, sample_matching_gradient):
+        with pytest.raises(ValueError, match="non-exponential transmittance"):
+            estimator(slab(family="gamma", mode=2.0), scene, np.ones((1, 4, 4)),
+                      samples_per_pixel=2, batches=2, progress=False)
 
 
 def test_energy_is_conserved_and_the_direct_beam_is_f_under_the_model():

@@ -34,6 +34,7 @@ from cloudct.retrieval.config import (
     OPTIMIZERS,
     RECYCLING,
     STAGE_FIELDS,
+    TRANSMITTANCE,
     ResumeConflict,
     RetrievalConfig,
     config_from_settings,
@@ -89,7 +90,7 @@ OPTION_FIELDS = {dest: dest for dest in (
     "recycling", "period", "min_ess", "recycling_memory", "stages", "stage_photons",
     "voxel_blocks", "stage_steps", "gradient_smoothing", "image_photons", "saturation_window",
     "step_decay", "estimator", "pixel_sampling", "averaging", "averaging_decay", "seed",
-    "checkpoint_every",
+    "checkpoint_every", "transmittance",
 )} | {"fresh_gradient": "recycle_gradient"}  # --fresh-gradient: recycle_gradient = false
 OPTION_NAMES = {field: "--" + dest.replace("_", "-") for dest, field in OPTION_FIELDS.items()}
 
@@ -213,9 +214,6 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
             except ResumeConflict as err:
                 raise ValueError(_resume_conflict(err.conflicts, origins)) from None
         else:
-            if client is not None and "estimator" not in settings:  # what the workers trace
-                stages = settings.get("stages", RetrievalConfig.stages)
-                settings["estimator"] = ("score",) * len(stages)
             run = Retrieval(measurements, initial, config_from_settings(settings), truth=truth,
                             **where)
         result = run.run(checkpoint=checkpoint, progress=None)
@@ -341,9 +339,9 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
     p.add_argument("--estimator", nargs="+", choices=ESTIMATORS,
                    help="per stage: the gradient estimator, score (path score function, "
                         "forward photons), drt (differential ratio tracking) or sm (sample "
-                        "matching), the last two tracing --photons camera paths on this "
-                        "machine (default sm, or score with --workers or --scheduler, a "
-                        "recycled gradient or lbfgsb)")
+                        "matching), the last two tracing --photons camera paths; all three "
+                        "run on the workers of --workers or --scheduler (default sm, or score "
+                        "with a recycled gradient or lbfgsb)")
     p.add_argument("--pixel-sampling", choices=PIXEL_SAMPLINGS,
                    help="drt, sm: trace every pixel alike (uniform) or draw pixels in "
                         "proportion to |residual| (residual, the default)")
@@ -355,6 +353,11 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
     p.add_argument("--averaging-decay", type=float,
                    help="--averaging ema: weight of the average so far at each iterate "
                         f"(default {c.averaging_decay})")
+    p.add_argument("--transmittance", choices=TRANSMITTANCE,
+                   help="the transmittance the retrieval assumes: exponential, or medium: the "
+                        "model and mode field the measurements record (docs/transmittance.md;"
+                        " differentiated by the score function, without recycling) "
+                        f"(default {c.transmittance})")
     p.add_argument("--saturation-window", type=int,
                    help="iterations over which the loss must keep falling to stay in a stage "
                         f"(default {c.saturation_window})")

@@ -15,12 +15,15 @@ from cloudct.distributed.batches import (
     BatchPart,
     CallStats,
     distributed_backward,
+    distributed_camera_gradient,
     distributed_forward,
     nbytes,
     stats_info,
 )
 from cloudct.distributed.cluster import DistributedError, _import_distributed
+from cloudct.mc.camera_gradient import DRT
 from cloudct.mc.forward import GRADIENT, RENDER
+from cloudct.mc.pixel_sampling import PixelTable
 
 
 class DaskExecutor:
@@ -186,6 +189,26 @@ class DaskExecutor:
         info = {"photons": per_batch * batches, "events": int(events.sum()),
                 "wall_time": stats.wall_time, "backend": stats.backend,
                 "aim_fraction": k.cams.aim_fraction, **stats_info(stats)}
+        return values / per_batch, info
+
+    def camera_gradient_batch_means(
+        self, k, residual: np.ndarray, table: PixelTable, *, estimator_args: tuple, seed: int,
+        per_batch: int, batches: int, rr_depth: int, rr_survival: float, backend: str,
+        progress: bool | None,
+    ) -> tuple[np.ndarray, dict]:
+        """The per-batch DRT or sample-matching gradients of
+        :func:`cloudct.mc.gradient.drt_gradient` /
+        :func:`~cloudct.mc.gradient.sample_matching_gradient`, traced on the workers, and
+        the path vertices, wall time and back end of their ``info`` (plus the call's
+        bookkeeping)."""
+        values, events, stats = distributed_camera_gradient(
+            self, k, residual, table, estimator_args=estimator_args, seed=seed,
+            per_batch=per_batch, batches=batches, rr_depth=rr_depth, rr_survival=rr_survival,
+            backend=backend, progress=progress,
+            desc="DRT" if estimator_args[0] == DRT else "sample matching",
+        )
+        info = {"events": int(events.sum()), "wall_time": stats.wall_time,
+                "backend": stats.backend, **stats_info(stats)}
         return values / per_batch, info
 
 

@@ -83,7 +83,7 @@ def trace_pixel_sample(
     depth = 0
     while True:
         u, state = uniform(state)
-        status, px, py, pz, ix, iy, iz, _, _ = march(
+        status, px, py, pz, ix, iy, iz, _, _, _ = march(
             grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
         )
         if status == LEFT:

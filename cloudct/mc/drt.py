@@ -277,12 +277,12 @@ def trace_path(
                 found = True
                 rx, ry, rz, rix, riy, riz, rux, ruy, ruz = px, py, pz, ix, iy, iz, ux, uy, uz
             # Eq. (10) / Eq. (6): every later contribution is attenuated by this segment
-            status, px, py, pz, ix, iy, iz, _, _ = march(
+            status, px, py, pz, ix, iy, iz, _, _, _ = march(
                 grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic, gradient,
                 -residual * (total - radiance),
             )
         else:
-            status, px, py, pz, ix, iy, iz, _, _ = march(
+            status, px, py, pz, ix, iy, iz, _, _, _ = march(
                 grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
             )
         if status == LEFT:

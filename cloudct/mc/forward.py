@@ -44,6 +44,7 @@ from cloudct.physics.mixing import (
     mixture_phase_function,
     scattering_log_derivative,
 )
+from cloudct.physics.transmittance import EXPONENTIAL
 
 INV_PI = 1.0 / math.pi
 
@@ -140,6 +141,7 @@ def local_estimate(
     """
     lx = grid.x_edges[-1] - grid.x_edges[0]
     ly = grid.y_edges[-1] - grid.y_edges[0]
+    model = grid.transmittance_family[0] != EXPONENTIAL
     weighted_sum = 0.0
     for view in range(cams.position.shape[0]):
         for i in range(copies[view, 0], copies[view, 1] + 1):
@@ -158,10 +160,15 @@ def local_estimate(
                 angular = connection_angular(grid, bank, ix, iy, iz, mu, ground_albedo)
                 if mode != RENDER and residual[view, row, col] == 0.0:
                     continue
-                if trail is None or mode != GRADIENT:
+                scale = 1.0  # of the connection's deposits (march; 1: exponential)
+                if mode != GRADIENT:
                     tau = optical_depth_to_exit(
                         grid, px, py, pz, cx, cy, cz, ix, iy, iz, periodic
                     )
+                elif trail is None or model:
+                    walk = march(grid, px, py, pz, cx, cy, cz, ix, iy, iz, INF, periodic)
+                    tau = walk[7]
+                    scale = walk[9]
                 else:
                     trail.count[0] = 0
                     tau = march(
@@ -175,12 +182,12 @@ def local_estimate(
                 value *= residual[view, row, col]
                 weighted_sum += value
                 if mode == GRADIENT and value != 0.0:
-                    if trail is not None and trail.count[0] <= trail.voxel.size:
+                    if trail is not None and not model and trail.count[0] <= trail.voxel.size:
                         deposit_trail(trail, gradient, -value)
                     else:
                         march(
                             grid, px, py, pz, cx, cy, cz, ix, iy, iz, INF, periodic, gradient,
-                            -value,
+                            -value * scale,
                         )
                     if ground_albedo < 0.0:
                         add_to(
@@ -246,12 +253,17 @@ def trace_photon(
     while True:
         u, state = uniform(state)
         if mode == GRADIENT and remaining != 0.0:
-            status, px, py, pz, ix, iy, iz, _, _ = march(
+            scale = 1.0  # of the flight's deposits: walked first for it under the model
+            if grid.transmittance_family[0] != EXPONENTIAL:
+                scale = march(
+                    grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
+                )[9]
+            status, px, py, pz, ix, iy, iz, _, _, _ = march(
                 grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic, gradient,
-                -remaining,
+                -remaining * scale,
             )
         else:
-            status, px, py, pz, ix, iy, iz, _, _ = march(
+            status, px, py, pz, ix, iy, iz, _, _, _ = march(
                 grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
             )
         if mode >= COUNT:

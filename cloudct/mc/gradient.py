@@ -8,7 +8,9 @@ coefficient changes with its extinction; air is not differentiated.
 - :func:`score_function_gradient`: forward paths with local estimation and the path score
   function of Eqs. (44)-(49) (see :func:`cloudct.mc.forward.trace_photon`). It is unbiased
   wherever paths can scatter; where the total extinction is zero no vertex can land, so it
-  misses the in-scattering a small increase of the cloud there would create.
+  misses the in-scattering a small increase of the cloud there would create. It is the
+  one estimator that also differentiates a non-exponential transmittance, the power law
+  (the score of T_pdf and T, :mod:`cloudct.physics.transmittance`; the mode field fixed).
 - DRT on the backward estimator (:mod:`cloudct.mc.drt`), unbiased everywhere.
 - Sample matching on the backward estimator (:mod:`cloudct.mc.sample_matching`), unbiased
   everywhere, with the scattering and attenuation terms evaluated at shared probe points.
@@ -32,7 +34,7 @@ from cloudct.mc.pixel_sampling import pixel_table
 from cloudct.mc.render import check_residual, check_sampling, kernel_inputs, run_in_rounds
 from cloudct.mc.runners import camera_gradient_runner, forward_runner
 from cloudct.mc.scene import Scene
-from cloudct.mc.traversal import require_exponential
+from cloudct.mc.traversal import require_exponential, require_smooth_flight_density
 
 #: Gradient estimators by name: path score function (forward), differential ratio tracking
 #: and sample matching (both backward, from the cameras).
@@ -73,7 +75,7 @@ def score_function_gradient(
     check_sampling(photons, batches, rr_depth, rr_survival)
     residual = check_residual(residual, scene)
     k = kernel_inputs(medium, scene, aim_fraction)
-    require_exponential(k.grid, "score-function gradients")
+    require_smooth_flight_density(k.grid, "score-function gradients")
     per_batch = math.ceil(int(photons) / batches)
     if executor is not None:
         batch_means, info = check_executor(executor).gradient_batch_means(
@@ -110,34 +112,42 @@ def _camera_gradient(
     estimator: int, medium: xr.Dataset, scene: Scene, residual: np.ndarray, *,
     samples_per_pixel: int, seed: int, batches: int, rr_depth: int, rr_survival: float,
     progress: bool | None, backend: str, pixel_sampling: str, probes: int = 1,
-    quadratic: bool = False, mis: bool = False,
+    quadratic: bool = False, mis: bool = False, executor: BatchExecutor | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """The camera-side estimators' common host side (see :func:`drt_gradient`)."""
     check_sampling(samples_per_pixel, batches, rr_depth, rr_survival)
     residual = check_residual(residual, scene)
     k = kernel_inputs(medium, scene, aim_fraction=0.0)  # camera paths aim at no camera
-    require_exponential(k.grid, "gradients")
+    require_exponential(k.grid, "DRT and sample-matching gradients")
     pixels = int(np.count_nonzero(residual))
     table = pixel_table(residual, pixel_sampling)
     # per batch: samples of each pixel (uniform), or as many samples in all (table)
     per_batch = math.ceil(int(samples_per_pixel) / batches)
     if table.pixel.size:
         per_batch *= pixels
-    gradients = np.zeros((batches, *k.grid.extinction.shape[1:]))
-    events = np.zeros(batches, dtype=np.int64)
-    backend = resolve_backend(backend)
-    run = camera_gradient_runner(
-        backend, k, rr_depth, rr_survival, seed, per_batch,
-        (estimator, int(probes), bool(quadratic), bool(mis)), residual, table, gradients,
-        events,
-    )
-    name = "DRT" if estimator == DRT else "sample matching"
-    wall = run_in_rounds(run, per_batch, batches, progress, unit="sample", desc=name,
-                         max_rounds=run.max_rounds)
+    estimator_args = (estimator, int(probes), bool(quadratic), bool(mis))
+    if executor is not None:
+        batch_means, info = check_executor(executor).camera_gradient_batch_means(
+            k, residual, table, estimator_args=estimator_args, seed=seed,
+            per_batch=per_batch, batches=batches, rr_depth=rr_depth,
+            rr_survival=rr_survival, backend=backend, progress=progress,
+        )
+    else:
+        gradients = np.zeros((batches, *k.grid.extinction.shape[1:]))
+        events = np.zeros(batches, dtype=np.int64)
+        backend = resolve_backend(backend)
+        run = camera_gradient_runner(
+            backend, k, rr_depth, rr_survival, seed, per_batch, estimator_args, residual,
+            table, gradients, events,
+        )
+        name = "DRT" if estimator == DRT else "sample matching"
+        wall = run_in_rounds(run, per_batch, batches, progress, unit="sample", desc=name,
+                             max_rounds=run.max_rounds)
+        batch_means = gradients / per_batch
+        info = {"events": int(events.sum()), "wall_time": wall, "backend": backend}
     info = {"photons": math.ceil(int(samples_per_pixel) / batches) * batches * pixels,
-            "events": int(events.sum()), "wall_time": wall, "backend": backend,
-            "pixel_sampling": pixel_sampling}
-    return (*mean_and_std_error(gradients / per_batch), info)
+            **info, "pixel_sampling": pixel_sampling}
+    return (*mean_and_std_error(batch_means), info)
 
 
 def drt_gradient(
@@ -153,6 +163,7 @@ def drt_gradient(
     pixel_sampling: str = "uniform",
     progress: bool | None = False,
     backend: str = "cpu",
+    executor: BatchExecutor | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """sum_d residual_d dI_d / d(cloud extinction) per voxel, by differential ratio
     tracking (:mod:`cloudct.mc.drt`).
@@ -174,6 +185,10 @@ def drt_gradient(
         (:mod:`cloudct.mc.pixel_sampling`).
     seed, batches, rr_depth, rr_survival, progress, backend
         As for :func:`cloudct.mc.render.render`.
+    executor
+        Traces the batches elsewhere, e.g. a :class:`cloudct.distributed.DaskExecutor` on
+        Dask workers (bitwise the same result, :mod:`cloudct.mc.executor`); None: this
+        process.
 
     Returns
     -------
@@ -185,7 +200,7 @@ def drt_gradient(
     return _camera_gradient(
         DRT, medium, scene, residual, samples_per_pixel=samples_per_pixel, seed=seed,
         batches=batches, rr_depth=rr_depth, rr_survival=rr_survival, progress=progress,
-        backend=backend, pixel_sampling=pixel_sampling,
+        backend=backend, pixel_sampling=pixel_sampling, executor=executor,
     )
 
 
@@ -205,6 +220,7 @@ def sample_matching_gradient(
     pixel_sampling: str = "uniform",
     progress: bool | None = False,
     backend: str = "cpu",
+    executor: BatchExecutor | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """sum_d residual_d dI_d / d(cloud extinction) per voxel, by sample matching
     (:mod:`cloudct.mc.sample_matching`): ``probes`` stratified probes per path segment
@@ -220,7 +236,7 @@ def sample_matching_gradient(
         SAMPLE_MATCHING, medium, scene, residual, samples_per_pixel=samples_per_pixel,
         seed=seed, batches=batches, rr_depth=rr_depth, rr_survival=rr_survival,
         progress=progress, backend=backend, pixel_sampling=pixel_sampling, probes=probes,
-        quadratic=quadratic, mis=mis,
+        quadratic=quadratic, mis=mis, executor=executor,
     )
 
 
@@ -241,11 +257,11 @@ def gradient_estimate(
     """sum_d residual_d dI_d / d beta_cloud per voxel by the estimator named ``estimator``
     (one of :data:`ESTIMATORS`), with ``paths`` paths in all.
 
-    ``"score"`` traces ``paths`` forward photons (each serves every pixel; an ``executor`` may
-    trace them elsewhere). ``"drt"`` and ``"sm"`` trace camera paths on this machine:
-    ``ceil(paths / n)`` samples per pixel for the n pixels whose residual is not zero, drawn
-    per pixel (``pixel_sampling="uniform"``) or, as many in all, in proportion to
-    |residual| (``"residual"``; :mod:`cloudct.mc.pixel_sampling`).
+    ``"score"`` traces ``paths`` forward photons (each serves every pixel). ``"drt"`` and
+    ``"sm"`` trace camera paths: ``ceil(paths / n)`` samples per pixel for the n pixels
+    whose residual is not zero, drawn per pixel (``pixel_sampling="uniform"``) or, as many
+    in all, in proportion to |residual| (``"residual"``; :mod:`cloudct.mc.pixel_sampling`).
+    An ``executor`` traces the batches of any of them elsewhere (bitwise the same result).
 
     Returns ``(mean, std_error, info)``; ``info`` holds the estimator, the paths traced
     and the wall time in seconds.
@@ -262,15 +278,13 @@ def gradient_estimate(
         )
         info["estimator"] = estimator
         return mean, std_error, info
-    if executor is not None:
-        raise ValueError(f"estimator {estimator!r} runs on this machine only: no executor")
     residual = check_residual(residual, scene)
     pixels = max(int(np.count_nonzero(residual)), 1)
     run = drt_gradient if estimator == "drt" else sample_matching_gradient
     mean, std_error, info = run(
         medium, scene, residual, samples_per_pixel=max(math.ceil(int(paths) / pixels), 1),
         seed=seed, batches=batches, pixel_sampling=pixel_sampling, progress=progress,
-        backend=backend,
+        backend=backend, executor=executor,
     )
     info["estimator"] = estimator
     return mean, std_error, info

@@ -138,7 +138,7 @@ def match_segments(
     cux = cuy = cuz = 0.0
     while True:
         u, state = uniform(state)
-        status, qx, qy, qz, qix, qiy, qiz, _, length = march(
+        status, qx, qy, qz, qix, qiy, qiz, _, length, _ = march(
             grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
         )
         leaves = status == LEFT or (status == BOTTOM and ground_albedo <= 0.0)
@@ -166,7 +166,7 @@ def match_segments(
         for i in range(probes):
             v, side = uniform(side)
             target = (i + v) / probes * length
-            _, yx, yy, yz, yix, yiy, yiz, _, _ = march(
+            _, yx, yy, yz, yix, yiy, yiz, _, _, _ = march(
                 grid, yx, yy, yz, ux, uy, uz, yix, yiy, yiz, INF, periodic, None, 0.0,
                 target - walked,
             )

@@ -28,7 +28,10 @@ from cloudct.mc.accumulate import add_to
 from cloudct.physics.mixing import total_extinction
 from cloudct.physics.transmittance import (
     EXPONENTIAL,
-    equivalent_depth_after,
+    LINEAR_MIX,
+    collision_factor,
+    depth_step,
+    log_hazard,
     optical_depth_to_reach,
 )
 
@@ -177,7 +180,17 @@ def march(
     (-log transmittance) with respect to each voxel's extinction, which the gradient
     estimators need. A :class:`Trail` records the crossings.
 
-    Returns ``(status, px, py, pz, ix, iy, iz, tau, distance)`` with status
+    Under a non-exponential transmittance ``tau`` is the equivalent depth s = -log T, and
+    the derivative of s at the walk's end with respect to voxel k's extinction is l_k
+    h_k(u_in) / Q_{k-1} x Q_n (:mod:`cloudct.physics.transmittance`): the walk adds
+    ``length_weight`` x l_k h_k(u_in) / Q_{k-1} and returns the end's factor as ``scale``,
+    so a caller that walks the ray once for ``scale`` and again with ``length_weight`` x
+    ``scale`` deposits the derivatives. For a walk that ended by reaching ``tau_target`` (a
+    free flight's collision), ``scale`` also holds the collision factor c, which turns them
+    into those of -log T_pdf (Eq. 9; the vertex's 1 / beta aside). ``scale`` is 1 for the
+    exponential, whose deposits are the derivatives themselves.
+
+    Returns ``(status, px, py, pz, ix, iy, iz, tau, distance, scale)`` with status
     :data:`STOPPED`, :data:`LEFT` or :data:`BOTTOM`; the position and voxel are where the
     walk ended (for LEFT and BOTTOM, on the face it left through), ``tau`` the optical depth
     travelled and ``distance`` the length walked (with periodic boundaries, across the
@@ -192,6 +205,7 @@ def march(
     family = grid.transmittance_family[0]
     tau = 0.0
     walked = 0.0
+    log_q = 0.0  # log Q: the hazard ratios of the voxels passed (non-exponential only)
     while True:
         t, axis = next_face(xe, ye, ze, px, py, pz, ux, uy, uz, ix, iy, iz)
         beta = total_extinction(grid, ix, iy, iz)
@@ -199,28 +213,36 @@ def march(
             tau_next = tau + beta * t
         else:  # tau is the equivalent optical depth -log T (Eqs. 7-8)
             mode = grid.transmittance_mode[ix, iy, iz]
-            tau_next = equivalent_depth_after(family, tau, mode, beta * t)
+            tau_next, log_ratio = depth_step(family, tau, mode, beta * t)
         piece = t  # the length walked in this voxel
         stop = False
+        collided = False
         if walked + t >= max_distance:
             s = max_distance - walked
             if family == EXPONENTIAL:
                 tau_s = tau + beta * s
             else:
-                tau_s = equivalent_depth_after(family, tau, mode, beta * s)
+                tau_s, log_ratio_s = depth_step(family, tau, mode, beta * s)
             if tau_s < tau_target:
                 piece = s
                 stop = True
                 tau_end = tau_s
+                if family != EXPONENTIAL:
+                    log_ratio = log_ratio_s
         if not stop and tau_next >= tau_target:
             if family == EXPONENTIAL:
                 piece = (tau_target - tau) / beta
             else:  # the free flight ends where T = u inside this voxel
                 piece = optical_depth_to_reach(family, tau, mode, tau_target) / beta
             stop = True
+            collided = True
             tau_end = tau_target
         if lengths is not None:
-            add_to(lengths, ix, iy, iz, length_weight * piece)
+            if family == EXPONENTIAL:
+                add_to(lengths, ix, iy, iz, length_weight * piece)
+            else:
+                add_to(lengths, ix, iy, iz, length_weight * piece
+                       * math.exp(log_hazard(family, tau, mode) - log_q))
         if trail is not None:
             n = trail.count[0]
             if n < trail.voxel.size:
@@ -229,12 +251,21 @@ def march(
             trail.count[0] = n + 1
             trail.distance[0] += piece
         if stop:
+            scale = 1.0
+            if family != EXPONENTIAL and tau_end < INF:  # (T = 0: nothing to differentiate)
+                if collided:
+                    log_ratio = log_hazard(family, tau_end, mode) - log_hazard(family, tau, mode)
+                scale = math.exp(log_q + log_ratio)
+                if collided:
+                    scale *= collision_factor(family, tau_end, mode)
             return (
                 STOPPED, px + piece * ux, py + piece * uy, pz + piece * uz, ix, iy, iz, tau_end,
-                walked + piece,
+                walked + piece, scale,
             )
         tau = tau_next
         walked += t
+        if family != EXPONENTIAL:
+            log_q += log_ratio
         # cross the face (spelled out here and in the DRT walk: this is the engine's
         # hottest loop, and an inlined function returning the 7-tuple ran 1.6x slower)
         px += t * ux
@@ -249,17 +280,33 @@ def march(
         if ix < 0 or ix == nx or iy < 0 or iy == ny or iz < 0 or iz == nz:
             status, px, py, pz, ix, iy, iz = cross_boundary(grid, px, py, pz, ix, iy, iz, periodic)
             if status != INSIDE:
-                return status, px, py, pz, ix, iy, iz, tau, walked
+                scale = 1.0 if family == EXPONENTIAL else math.exp(log_q)
+                return status, px, py, pz, ix, iy, iz, tau, walked, scale
 
 
 def require_exponential(grid, what: str) -> None:
-    """Refuse ``what`` (a gradient, path recycling) for a medium whose transmittance is not
-    exponential: those estimators take the score and the replay of exponential paths."""
+    """Refuse ``what`` (DRT, sample matching, path recycling) for a medium whose
+    transmittance is not exponential: those estimators take the derivatives and the replay
+    of exponential paths; the path score function differentiates the model."""
     if grid.transmittance_family[0] != EXPONENTIAL:
         raise ValueError(
             f"{what} under a non-exponential transmittance (the medium's transmittance "
-            "attribute) are not implemented: render such media, or retrieve under the "
-            "exponential assumption (a medium without transmittance_mode)"
+            "attribute) are not implemented: use the path score function (estimator "
+            "'score', no path recycling), or retrieve under the exponential assumption"
+        )
+
+
+def require_smooth_flight_density(grid, what: str) -> None:
+    """Refuse ``what`` (the path score function) under a linear-mix transmittance with a
+    mode below 1: its collision density -f' jumps where the linear part ends (optical
+    depth 2 inside a voxel), a point that moves with the extinction, and the score function
+    misses the boundary term of that jump (docs/transmittance.md, "Gradients")."""
+    if grid.transmittance_family[0] == LINEAR_MIX and np.any(grid.transmittance_mode < 1.0):
+        raise ValueError(
+            f"{what} under the linear-mix transmittance are not implemented: its collision "
+            "density jumps where the linear part ends, and the score function misses that "
+            "boundary's term (docs/transmittance.md); the power law (transmittance 'gamma') "
+            "is differentiated"
         )
 
 

@@ -18,7 +18,12 @@ cell edges, domain bounds) and :mod:`~cloudct.medium.io` (netCDF files); everyth
 public is imported from ``cloudct.medium``.
 """
 
-from cloudct.medium.constructors import microphysical_medium, optical_medium
+from cloudct.medium.constructors import (
+    microphysical_medium,
+    optical_medium,
+    transmittance_model,
+    with_transmittance,
+)
 from cloudct.medium.io import load_medium, save_medium
 from cloudct.medium.queries import cell_edges, domain_bounds, is_microphysical, is_optical
 from cloudct.medium.schema import (
@@ -32,7 +37,7 @@ from cloudct.medium.schema import (
     DomainBounds,
     MediumError,
 )
-from cloudct.medium.validation import validate_medium
+from cloudct.medium.validation import check_transmittance, validate_medium
 
 __all__ = [
     "DEFAULT_AIR_ALBEDO",
@@ -45,6 +50,7 @@ __all__ = [
     "DomainBounds",
     "MediumError",
     "cell_edges",
+    "check_transmittance",
     "domain_bounds",
     "is_microphysical",
     "is_optical",
@@ -52,5 +58,7 @@ __all__ = [
     "microphysical_medium",
     "optical_medium",
     "save_medium",
+    "transmittance_model",
     "validate_medium",
+    "with_transmittance",
 ]

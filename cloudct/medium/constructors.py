@@ -139,6 +139,41 @@ def optical_medium(
     return _assemble(coords, data_vars, attrs)
 
 
+def with_transmittance(medium: xr.Dataset, family: str, mode: ArrayLike | None = None
+                       ) -> xr.Dataset:
+    """A copy of ``medium`` with the transmittance ``family`` (the attribute
+    ``transmittance``: ``"exponential"``, ``"linear-mix"`` or ``"gamma"``,
+    docs/transmittance.md) and its ``mode`` (the variable ``transmittance_mode``: a scalar,
+    an (nx, ny, nz) array or a DataArray on the medium grid; the power law's a, which may be
+    ``inf``, or Eq. 6's gamma). ``"exponential"`` removes both.
+
+    Raises:
+        MediumError: an unknown family, a missing mode, or modes out of the family's range.
+    """
+    out = medium.copy()
+    out.attrs.pop("transmittance", None)
+    if "transmittance_mode" in out:
+        out = out.drop_vars("transmittance_mode")
+    if family == "exponential":
+        return out
+    if mode is None:
+        raise MediumError(f"transmittance {family!r} needs a mode")
+    sizes = {d: out.sizes[d] for d in GRID_DIMS}
+    coords = {d: out[d].variable for d in GRID_DIMS}
+    out["transmittance_mode"] = _variable("transmittance_mode", mode, sizes, coords)
+    out.attrs["transmittance"] = family
+    validate_medium(out)
+    return out
+
+
+def transmittance_model(medium: xr.Dataset) -> tuple[str, xr.DataArray | None]:
+    """The medium's transmittance family and its mode (None for the exponential)."""
+    family = str(medium.attrs.get("transmittance", "exponential"))
+    if family == "exponential":
+        return family, None
+    return family, medium["transmittance_mode"]
+
+
 def _grid_variables(
     x: ArrayLike, y: ArrayLike, z: ArrayLike, z_bounds: ArrayLike | None
 ) -> tuple[dict[str, xr.Variable], dict[str, int]]:

@@ -224,7 +224,7 @@ def _check_values(ds: xr.Dataset) -> None:
         _require(ds["cloud_g"], np.abs(ds["cloud_g"].values) < 1, "must satisfy -1 < g < 1")
     if "cloud_phase" in ds:
         _check_phase_table(ds)
-    _check_transmittance(ds)
+    check_transmittance(ds)
     if "wavelength" in ds.attrs:
         wavelength = ds.attrs["wavelength"]
         number = isinstance(wavelength, (int, float, np.integer, np.floating))
@@ -232,8 +232,10 @@ def _check_values(ds: xr.Dataset) -> None:
             raise MediumError(f"attribute wavelength must be > 0 (micron), is {wavelength!r}")
 
 
-def _check_transmittance(ds: xr.Dataset) -> None:
-    """The transmittance family (attribute ``transmittance``) and its mode field."""
+def check_transmittance(ds: xr.Dataset) -> None:
+    """The transmittance family (attribute ``transmittance``) and its mode (variable
+    ``transmittance_mode``) of a medium, or of measurements that record them; raises
+    :class:`MediumError`."""
     family = ds.attrs.get("transmittance", "exponential")
     if family not in TRANSMITTANCE_FAMILIES:
         raise MediumError(f"attribute transmittance must be one of "

@@ -25,6 +25,21 @@ l = (f^-1(u, m_v) - f^-1(T_in, m_v)) / beta_v. The collision density is T_pdf = 
 (f^-1(T, m), m) beta (Eq. 9), not beta T. All functions are ``@njit`` and work on the
 *equivalent optical depth* s = -log T, in which the exponential family is the identity
 (s_out = s_in + beta l), so that a walk can carry one number for every family.
+
+Derivatives with respect to the extinctions (the score function, mode field fixed). Write
+u_j for the local optical depth f_j^-1(T) inside voxel j of a ray, h_j(u) = -f_j'(u) /
+f_j(u) for the family's *hazard* (1 for the exponential) and tau_j = beta_j l_j. The
+recursion gives ds_j / ds_{j-1} = h_j(u_out) / h_j(u_in) and ds_j / dtau_j = h_j(u_out),
+so the equivalent depth s at the end of a walk through voxels 1 .. n changes with voxel k's
+extinction as
+
+    ds / dbeta_k = l_k h_k(u_in,k) / Q_{k-1} x Q_n,   Q_k = prod_{j<=k} h_j(u_out,j) / h_j(u_in,j),
+
+(for the exponential l_k; for the power law with one mode, l_k / (1 + m U), U the ray's
+optical depth). The log of a free flight's collision density beta_v phi_v(u) (phi = -f',
+Eq. 9) changes as d log T_pdf / dbeta_k = delta_kv / beta_v - c ds / dbeta_k with the
+*collision factor* c = -phi' f / phi^2 at the collision (1 for the exponential, 1 + m for
+the power law, :func:`collision_factor`).
 """
 
 from __future__ import annotations
@@ -90,15 +105,31 @@ def optical_depth_of(family: int, t: float, m: float) -> float:
 
 
 @njit(cache=True, inline="always")
-def equivalent_depth_after(family: int, s: float, m: float, dtau: float) -> float:
-    """The equivalent optical depth -log T after a voxel of optical depth ``dtau`` and mode
-    ``m`` entered at equivalent depth ``s`` (Eqs. 7-8, exact for a constant mode)."""
-    if family == EXPONENTIAL or (family == GAMMA and m <= 0.0) or (
+def is_exponential(family: int, m: float) -> bool:
+    """Whether the family is exponential at mode ``m`` (its limit a = inf, gamma = 1)."""
+    return family == EXPONENTIAL or (family == GAMMA and m <= 0.0) or (
         family == LINEAR_MIX and m >= 1.0
-    ):
-        return s + dtau
-    t = transmittance(family, optical_depth_of(family, math.exp(-s), m) + dtau, m)
-    return -math.log(t) if t > 0.0 else math.inf
+    )
+
+
+@njit(cache=True, inline="always")
+def depth_step(family: int, s: float, m: float, dtau: float) -> tuple[float, float]:
+    """A voxel of optical depth ``dtau`` and mode ``m`` entered at equivalent depth ``s``:
+    the equivalent depth -log T after it (Eqs. 7-8, exact for a constant mode) and log
+    h(u_out) / h(u_in), the log of its hazard ratio (the module docstring's Q factor)."""
+    if is_exponential(family, m):
+        return s + dtau, 0.0
+    if family == GAMMA:  # u = f^-1(e^-s) = expm1(m s) / m, s = log1p(m u) / m, h = e^(-m s)
+        s_out = math.log1p(math.expm1(m * s) + m * dtau) / m
+        return s_out, -m * (s_out - s)
+    t_in = math.exp(-s)
+    u = optical_depth_of(family, t_in, m)
+    t = transmittance(family, u + dtau, m)
+    if t <= 0.0:  # the linear family's end: nothing passes, no derivative is taken
+        return math.inf, 0.0
+    ratio = (transmittance_slope(family, u + dtau, m) * t_in
+             / (transmittance_slope(family, u, m) * t))
+    return -math.log(t), math.log(ratio)
 
 
 @njit(cache=True, inline="always")
@@ -106,9 +137,40 @@ def optical_depth_to_reach(family: int, s: float, m: float, s_target: float) -> 
     """The optical depth of a voxel of mode ``m`` entered at equivalent depth ``s`` after
     which the equivalent depth reaches ``s_target`` >= s: the free flight's end inside the
     voxel (divide by the voxel's extinction for the length)."""
-    if family == EXPONENTIAL or (family == GAMMA and m <= 0.0) or (
-        family == LINEAR_MIX and m >= 1.0
-    ):
+    if is_exponential(family, m):
         return s_target - s
+    if family == GAMMA:
+        return (math.expm1(m * s_target) - math.expm1(m * s)) / m
     return (optical_depth_of(family, math.exp(-s_target), m)
             - optical_depth_of(family, math.exp(-s), m))
+
+
+@njit(cache=True, inline="always")
+def log_hazard(family: int, s: float, m: float) -> float:
+    """log h, h = -f'(u) / f(u) = ds / du, at the equivalent depth ``s`` (T = e^-s, u =
+    f^-1(T, m)) in a voxel of mode ``m`` (h = 1 for the exponential, e^(-m s) = 1 / (1 + m
+    u) for the power law)."""
+    if is_exponential(family, m):
+        return 0.0
+    if family == GAMMA:
+        return -m * s
+    t = math.exp(-s)
+    return math.log(transmittance_slope(family, optical_depth_of(family, t, m), m) / t)
+
+
+@njit(cache=True, inline="always")
+def collision_factor(family: int, s: float, m: float) -> float:
+    """c = -phi'(u) f(u) / phi(u)^2 (phi = -f') at the end of a free flight at equivalent
+    depth ``s`` in a voxel of mode ``m``: the collision density's log derivative per unit
+    of the flight's equivalent depth (module docstring; 1 for the exponential, 1 + m for
+    the power law)."""
+    if is_exponential(family, m):
+        return 1.0
+    if family == GAMMA:
+        return 1.0 + m
+    u = optical_depth_of(family, math.exp(-s), m)
+    if u >= 2.0:  # the linear mix's exponential tail
+        return 1.0
+    decay = m * math.exp(-u)  # -phi' on the linear part, where phi = decay + (1 - m) / 2
+    phi = decay + 0.5 * (1.0 - m)
+    return decay * transmittance(family, u, m) / (phi * phi)

@@ -53,6 +53,8 @@ PER_STAGE_DEFAULTS = (
     ("gradient_smoothing", float, 1.0, 0.0), ("image_photons", float, 4.0, 1.0),
 )
 AVERAGING = ("none", "uniform", "ema")
+#: The transmittance a retrieval assumes: exponential or the measurements' model.
+TRANSMITTANCE = ("exponential", "medium")
 
 
 @dataclass
@@ -71,6 +73,10 @@ class RetrievalConfig:
     :meth:`Retrieval.l1_gradient`) is off by default: it changes what is estimated, and its
     weight was measured on that cloud (0.01 /km^2 lowered epsilon there) and checked on one
     more (benchmarks/scenes.py two_cumuli: the same gain).
+
+    ``transmittance="medium"`` retrieves under the measurements' (non-exponential) model,
+    differentiated by the score function alone (its default estimator there; recycling and
+    L-BFGS-B refused); ``"exponential"`` assumes exp(-tau) (docs/transmittance.md).
 
     ``optimizer="lbfgsb"`` makes every iteration a window of L-BFGS-B on the sample-average
     loss of fixed paths (:mod:`cloudct.retrieval.sample_average`): up to ``period``
@@ -116,6 +122,8 @@ class RetrievalConfig:
     # (Polyak-Ruppert) or "ema" (exponential moving average), restarted at every stage
     # change and step decay
     averaging_decay: float = 0.9  # "ema": weight of the average so far at each iterate
+    transmittance: str = "exponential"  # or "medium": the measurements' transmittance model
+    # and mode field (differentiated by the score function only)
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -127,9 +135,13 @@ class RetrievalConfig:
             values = getattr(self, name)
             values = (default,) * len(self.stages) if values is None else values
             setattr(self, name, tuple(kind(v) for v in values))
+        if self.transmittance not in TRANSMITTANCE:
+            raise ValueError(f"transmittance must be one of {TRANSMITTANCE}, got "
+                             f"{self.transmittance!r}")
+        model = self.transmittance == "medium"
         if self.estimator is None:  # the best measured, where stored paths are not replayed
             replayed = quasi_newton or (self.recycling != "none" and self.recycle_gradient)
-            self.estimator = ("score" if replayed else "sm",) * len(self.stages)
+            self.estimator = ("score" if replayed or model else "sm",) * len(self.stages)
         self.estimator = tuple(str(name) for name in self.estimator)
         camera_side = any(name != "score" for name in self.estimator)
         if self.pixel_sampling is None:
@@ -156,6 +168,12 @@ class RetrievalConfig:
                 "recycled gradients (a recycling policy without recycle_gradient=False) and "
                 "optimizer 'lbfgsb' replay stored forward paths: they need the estimator "
                 "'score' at every stage"
+            )
+        if model and (camera_side or quasi_newton or self.recycling != "none"):
+            raise ValueError(
+                "transmittance 'medium' (a non-exponential model) is differentiated by the "
+                "path score function alone, without stored paths: use the estimator 'score' "
+                "at every stage, recycling 'none' and the optimizer adam or sgd"
             )
         if min(self.stages) < 1:
             raise ValueError(f"stages (pixel blocks) must be >= 1, got {self.stages}")
@@ -274,6 +292,8 @@ RUN_KEYS = {k.name: k for k in (
              "restarted at stage changes and step decays"),
     _run_key("averaging_decay", float, "ema averaging: weight of the average so far at each "
              "iterate"),
+    _run_key("transmittance", str, "exponential, or medium: the measurements' transmittance "
+             "model and mode field (estimator score, no recycling)"),
     _run_key("seed", int, "seed of the photons: the same seed repeats the same iterates"),
     _run_key("checkpoint_every", int, "iterations between checkpoints"),
     _run_key("time_limit", float, "seconds of wall time after which the run stops (unset: "
@@ -292,7 +312,7 @@ STAGE_KEYS = {k.name: k for k in (
     Key("smoothing", "gradient_smoothing", float, "Gaussian sigma [voxels] of the "
         "gradient's smoothing inside the hull (unset: 1; 0 with lbfgsb)"),
     Key("estimator", "estimator", str, "gradient estimator: score, drt or sm (unset: sm; "
-        "score where stored paths are replayed)"),
+        "score where stored paths are replayed or the transmittance is the medium's)"),
 )}
 #: RetrievalConfig's per-stage field -> the ``[[stage]]`` key.
 STAGE_FIELDS = {k.field: name for name, k in STAGE_KEYS.items()}

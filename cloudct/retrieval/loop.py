@@ -26,7 +26,8 @@ from tqdm.auto import tqdm
 from cloudct.distributed.executor import executor
 from cloudct.mc.gradient import gradient_estimate
 from cloudct.mc.scene import Scene
-from cloudct.medium import cell_edges, validate_medium
+from cloudct.measurements import assumed_transmittance, measured_transmittance
+from cloudct.medium import cell_edges, transmittance_model, validate_medium
 from cloudct.netcdf import InputFileError, load_netcdf, require_variables, save_netcdf
 from cloudct.optics import optics_name
 from cloudct.retrieval.config import (  # noqa: F401 (the settings, imported from here too)
@@ -88,6 +89,8 @@ def run_id(measurements: xr.Dataset, config: RetrievalConfig) -> str:
         ignored.append("estimator")
     if config.pixel_sampling == "uniform":
         ignored.append("pixel_sampling")
+    if config.transmittance == "exponential":
+        ignored.append("transmittance")
     settings = {k: v for k, v in asdict(config).items() if k not in ignored}
     h.update(json.dumps(settings, sort_keys=True).encode())
     return h.hexdigest()[:16]
@@ -136,7 +139,7 @@ class Retrieval:
         self.client = client
         self.config = config or RetrievalConfig()
         self.measurements = measurements
-        self.template = initial
+        self.template = assumed_transmittance(initial, measurements, self.config.transmittance)
         self.mask = (
             initial["cloud_extinction"].values > 0 if mask is None else np.asarray(mask, bool)
         )
@@ -148,9 +151,6 @@ class Retrieval:
         quasi_newton = self.config.optimizer == "lbfgsb"
         if quasi_newton and client is not None:
             raise ValueError("optimizer 'lbfgsb' records its paths on this machine: no client")
-        if client is not None and any(e != "score" for e in self.config.estimator):
-            raise ValueError("the camera-side estimators (drt, sm) trace on this machine: "
-                             "use the estimator 'score' with a client")
         self.optimizer = None if quasi_newton else make_optimizer(
             self.config.optimizer, self.config.step
         )
@@ -457,6 +457,8 @@ class Retrieval:
             step_scale=s.step_scale, decayed_at=s.decayed_at, average_weight=s.average_weight,
             optics=optics_name(self.template),
             measurement_optics=str(self.measurements.attrs.get("optics", "unrecorded")),
+            transmittance=transmittance_model(self.template)[0],
+            measurement_transmittance=measured_transmittance(self.measurements)[0],
         )
         return ds
 
