@@ -61,12 +61,14 @@ def run_command(argv: list[str], log: list[dict]) -> None:
 
 
 def error_over_time(result: str | Path, minutes=(5, 15, 30, 60)) -> dict:
-    """Iterations, epsilon and delta of a retrieval result file at each of ``minutes``
-    (the last iteration done by then), and at its end."""
+    """Iterations, epsilon and delta of a retrieval result file at each of ``minutes`` that
+    the run lasted (the last iteration done by then), and at its end."""
     ds = xr.load_dataset(result)
     seconds = ds["log_seconds"].values
     marks = {}
     for m in minutes:
+        if 60 * m > 1.01 * seconds[-1]:
+            break
         done = np.flatnonzero(seconds <= 60 * m)
         if done.size:
             i = done[-1]

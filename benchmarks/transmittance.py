@@ -39,7 +39,7 @@ from cloudct.mc.render import render, single_cloud_medium  # noqa: E402
 from cloudct.mc.scene import single_cloud_scene  # noqa: E402
 from cloudct.mc.sensors import domain_means  # noqa: E402
 from cloudct.mc.sun import Sun  # noqa: E402
-from cloudct.medium import cell_edges, optical_medium  # noqa: E402
+from cloudct.medium import cell_edges, optical_medium, with_transmittance  # noqa: E402
 from cloudct.physics.transmittance import GAMMA, LINEAR_MIX, transmittance  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -48,10 +48,7 @@ FIGURE = HERE.parent / "docs" / "figures" / "transmittance.png"
 
 def with_power_law(medium, a: float):
     """The medium with the gamma (power-law) transmittance of shape ``a`` everywhere."""
-    out = medium.copy()
-    out["transmittance_mode"] = ((), a, {"units": "1", "long_name": "power-law shape a"})
-    out.attrs["transmittance"] = "gamma"
-    return out
+    return with_transmittance(medium, "gamma", a)
 
 
 def timed_render(medium, scene, photons: int, method: str = "forward", repeats: int = 3):

@@ -237,13 +237,20 @@ def assumed_transmittance(initial: xr.Dataset, measurements: xr.Dataset, assumpt
     drops any model the medium carries (with a warning), ``"medium"`` gives it the
     measurements' family and mode (:func:`measured_transmittance`), a field of which must
     lie on the medium's grid."""
+    family, mode = measured_transmittance(measurements)
     if assumption == "exponential":
         if transmittance_model(initial)[0] != "exponential":
             warnings.warn("the initial medium's non-exponential transmittance is dropped: the "
                           "retrieval assumes the exponential (transmittance 'medium' keeps "
                           "the measurements' model)", stacklevel=3)
+        if family != "exponential":
+            warnings.warn(f"the measurements were made under the {family!r} transmittance; "
+                          "the retrieval assumes the exponential (transmittance 'medium' "
+                          "retrieves under theirs)", stacklevel=3)
         return with_transmittance(initial, "exponential")
-    family, mode = measured_transmittance(measurements)
+    if family == "exponential":
+        warnings.warn("the measurements record no non-exponential transmittance: the "
+                      "retrieval under their model assumes the exponential", stacklevel=3)
     try:
         return with_transmittance(initial, family, mode)
     except MediumError as err:

@@ -16,7 +16,7 @@ from cloudct.measurements import save_measurements, synthesize_measurements
 from cloudct.medium import cell_edges, load_medium, save_medium, validate_medium
 from cloudct.optics import to_optical
 from cloudct.retrieval import carving
-from cloudct.retrieval.carving import carve, default_k, initial_medium
+from cloudct.retrieval.carving import carve, default_k, fit_extinction, initial_medium
 from cloudct.retrieval.cloudy_pixels import clear_sky_background, project_points
 from cloudct.retrieval.metrics import epsilon_delta
 from data_synth.synthetic_cloud import blob_cloud, synthetic_cloud
@@ -256,6 +256,11 @@ def test_initial_medium_refuses_bad_input(blob, blob_measurements):
         initial_medium(carved.hull * 0, blob, 10.0)
     with pytest.raises(ValueError, match="k must be"):
         carve(blob_measurements, blob, k=10, fit_photons=None)
+    # a hull of one voxel cannot be as bright as the blob: the message says why
+    tiny = carved.hull * 0
+    tiny.values[8, 8, 6] = 1
+    with pytest.raises(ValueError, match="hull's 1 voxels are too few"):
+        fit_extinction(blob_measurements, tiny, blob, photons=2000, max_iterations=3)
 
 
 def test_cli_carve(blob, blob_measurements, tmp_path, capsys):

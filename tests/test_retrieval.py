@@ -150,6 +150,7 @@ def test_coarse_measurements_are_block_means():
     np.testing.assert_allclose(
         coarse.radiance.values[1, 2, 0], images.radiance.values[1, 4:6, 0:2].mean()
     )
+    assert coarse.attrs["optics"] == images.attrs["optics"]  # the attributes stay
 
 
 @pytest.fixture(scope="module")

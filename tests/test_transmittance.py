@@ -30,6 +30,7 @@ from cloudct.physics.transmittance import (
     transmittance,
     transmittance_slope,
 )
+from cloudct.recycling import record_paths, replay_images
 
 
 def closed_form(family: str, tau: np.ndarray, mode: float) -> np.ndarray:
@@ -168,6 +169,12 @@ def test_bad_modes_and_unsupported_estimators_are_refused():
         with pytest.raises(ValueError, match="non-exponential transmittance"):
             estimator(slab(family="gamma", mode=2.0), scene, np.ones((1, 4, 4)),
                       samples_per_pixel=2, batches=2, progress=False)
+    # path recycling records and replays exponential paths only
+    with pytest.raises(ValueError, match="non-exponential transmittance"):
+        record_paths(slab(family="gamma", mode=2.0), scene, photons=8, batches=2)
+    store = record_paths(slab(), scene, photons=8, batches=2)
+    with pytest.raises(ValueError, match="non-exponential transmittance"):
+        replay_images(store, slab(family="gamma", mode=2.0))
 
 
 def test_energy_is_conserved_and_the_direct_beam_is_f_under_the_model():

@@ -19,6 +19,7 @@ import math
 import numpy as np
 import pytest
 from mcstats import assert_consistent
+from scipy.optimize import brentq
 from test_score_gradient import (
     BATCHES,
     SCATTERING_VOXELS,
@@ -30,7 +31,7 @@ from test_score_gradient import (
 from test_transmittance import closed_form, slab
 
 from cloudct.mc.gradient import score_function_gradient
-from cloudct.mc.traversal import INF, locate_point, march
+from cloudct.mc.traversal import INF, LEFT, STOPPED, locate_point, march
 from cloudct.medium import with_transmittance
 from cloudct.optics import kernel_arrays
 from cloudct.physics.transmittance import GAMMA, LINEAR_MIX, collision_factor
@@ -50,50 +51,86 @@ def mode_field(family: str, shape: tuple[int, int, int]) -> np.ndarray:
     return field
 
 
-def ray(grid):
-    """A slanted ray from a point on the top face, through many voxels."""
-    d = np.array([0.45, 0.3, -0.84])
-    d /= np.linalg.norm(d)
-    p = (0.07, 0.11, float(grid.z_edges[-1]))
-    return p, d, locate_point(grid, *p, *d)
+#: Walks along which the derivatives are checked: (start, direction, optical-depth target,
+#: distance, periodic). A walk stopped at a distance (two points), a free flight that ends
+#: in a collision, a ray that leaves through the top, and one that wraps across the side
+#: faces (periodic) before it leaves.
+WALKS = {
+    "distance": ((0.07, 0.11, 1.0), (0.45, 0.3, -0.84), INF, 0.9, False),
+    "collision": ((0.07, 0.11, 1.0), (0.45, 0.3, -0.84), 0.35, INF, False),
+    "exit": ((0.5, 0.4, 0.02), (-0.3, 0.2, 0.93), INF, INF, False),
+    "periodic exit": ((0.81, 0.52, 0.02), (0.8, 0.45, 0.6), INF, INF, True),
+}
+STATUS = {"distance": STOPPED, "collision": STOPPED, "exit": LEFT, "periodic exit": LEFT}
 
 
-def depth_and_derivative(medium, max_distance):
-    """The walk's equivalent depth over ``max_distance`` and its derivative per voxel
-    (deposits x scale), and the walk's scale."""
+def walk(ext, family, which, deposits=None, distance=None):
+    """The walk ``which`` through the 5 x 5 x 5 slab of extinction ``ext`` under
+    ``family`` (:func:`mode_field`, or exponential for None); with ``deposits``, they are
+    added there; ``distance`` replaces the walk's."""
+    medium = slab(5, 5, 5, extinction=ext)
+    if family is not None:
+        medium = with_transmittance(medium, family, mode_field(family, ext.shape))
     grid, _ = kernel_arrays(medium)
-    p, d, cell = ray(grid)
-    deposits = np.zeros(grid.extinction.shape[1:])
-    first = march(grid, *p, *d, *cell, INF, False, None, 0.0, max_distance)
-    march(grid, *p, *d, *cell, INF, False, deposits, 1.0, max_distance)
-    return first[7], deposits * first[9], first
+    p, d, target, limit, periodic = WALKS[which]
+    d = np.array(d) / np.linalg.norm(d)
+    cell = locate_point(grid, *p, *d)
+    return march(grid, *p, *d, *cell, target, periodic, deposits, 1.0,
+                 limit if distance is None else distance)
+
+
+def log_density_at(ext, family, distance, voxel):
+    """log(beta_v phi_v(u)) of a collision at a fixed ``distance`` along the collision walk's
+    ray, u the local optical depth of the walk's T there in the mode of the end voxel
+    ``voxel``, phi = -f' from the closed forms (a root finder inverts f)."""
+    s = walk(ext, family, "distance", None, distance)[7]  # the collision walk's ray
+    mode = mode_field(family, ext.shape)[voxel]
+    if mode == np.inf:  # the power law's exponential limit
+        return math.log(ext[voxel]) - s
+    u = brentq(lambda t: closed_form(family, np.array(t), mode) - math.exp(-s), 0.0, 50.0,
+               xtol=1e-15, rtol=4 * np.finfo(float).eps)
+    if family == "gamma":  # phi = -f' of the closed forms, differentiated by hand
+        phi = (1 + u / mode) ** (-mode - 1)
+    else:
+        phi = mode * math.exp(-u) + (0.5 * (1 - mode) if u < 2 else 0.0)
+    return math.log(ext[voxel] * phi)
 
 
 @pytest.mark.parametrize("family", ["gamma", "linear-mix"])
-def test_the_walks_depth_derivatives_match_central_differences(family):
-    """ds / dbeta_k (Q ratios and hazards, cloudct.physics.transmittance) equals central
-    differences of the walk's own s, voxel by voxel, to the differences' truncation."""
+@pytest.mark.parametrize("which", list(WALKS))
+def test_the_walks_derivatives_match_central_differences(family, which):
+    """The deposits times the walk's scale (Q ratios, hazards, the collision factor:
+    cloudct.physics.transmittance) against central differences voxel by voxel: of the
+    walk's own equivalent depth s for a walk stopped at a distance or leaving the medium,
+    and of minus the log collision density (its 1 / beta_v aside) for a free flight's
+    collision, at the collision's distance."""
     rng = np.random.default_rng(3)
     ext = rng.uniform(0.3, 1.2, size=(5, 5, 5))  # optical depths below the linear part's 2
-    medium = with_transmittance(slab(5, 5, 5, extinction=ext), family,
-                                mode_field(family, ext.shape))
-    s, derivative, first = depth_and_derivative(medium, 0.9)
-    assert first[0] == 0 and 0.3 < s < 1.5  # stopped at the distance, T well inside (0, 1)
-    crossed = np.argwhere(derivative != 0.0)
-    assert len(crossed) >= 5
-    for v in map(tuple, crossed):
+    deposits = np.zeros(ext.shape)
+    first = walk(ext, family, which)
+    walk(ext, family, which, deposits)
+    derivative = deposits * first[9]
+    crossed = list(map(tuple, np.argwhere(derivative != 0.0)))
+    assert first[0] == STATUS[which] and 0.1 < first[7] < 2.0, first
+    assert len(crossed) >= 4, crossed
+    end = tuple(first[4:7])
+    if which == "collision":  # in a voxel of a non-exponential mode: c is not 1 there
+        assert mode_field(family, ext.shape)[end] not in (1.0, np.inf)
+    for v in crossed:
         h = 1e-6 * ext[v]
         up, down = ext.copy(), ext.copy()
         up[v] += h
         down[v] -= h
-        s_up = depth_and_derivative(with_transmittance(slab(5, 5, 5, extinction=up), family,
-                                                       mode_field(family, ext.shape)), 0.9)[0]
-        s_down = depth_and_derivative(with_transmittance(slab(5, 5, 5, extinction=down),
-                                                         family, mode_field(family, ext.shape)),
-                                      0.9)[0]
-        assert derivative[v] == pytest.approx((s_up - s_down) / (2 * h), rel=1e-6), v
+        if which == "collision":  # -d log T_pdf = c ds - delta / beta at the fixed end
+            reference = -(log_density_at(up, family, first[8], end)
+                          - log_density_at(down, family, first[8], end)) / (2 * h)
+            reference += (1.0 / ext[v]) if v == end else 0.0
+        else:
+            reference = (walk(up, family, which)[7] - walk(down, family, which)[7]) / (2 * h)
+        assert derivative[v] == pytest.approx(reference, rel=2e-6), (v, which)
     # the derivatives are not the exponential's lengths: the test tells the two apart
-    _, lengths, _ = depth_and_derivative(with_transmittance(medium, "exponential"), 0.9)
+    lengths = np.zeros(ext.shape)
+    walk(ext, None, which, lengths)
     assert np.max(np.abs(derivative - lengths)) > 0.05 * np.max(lengths)
 
 

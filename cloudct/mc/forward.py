@@ -133,7 +133,8 @@ def local_estimate(
     ``mode`` RENDER adds each estimate to ``image``. RESIDUAL and GRADIENT return the sum S
     of the estimates weighted by their pixels' ``residual``; GRADIENT also deposits into
     ``gradient`` the terms of the score function (Eq. 49) that belong to this event alone:
-    the connection segment to the camera (-l per voxel) and, for scattering, the vertex
+    the connection segment to the camera (-ds/dbeta per voxel, -l for the exponential; see
+    :func:`cloudct.mc.traversal.march`) and, for scattering, the vertex
     term at the angle towards the camera. With a scratch :class:`~cloudct.mc.traversal.Trail`
     (``trail``), GRADIENT deposits the connection segment from the crossings recorded while
     computing its transmittance instead of walking it a second time (same values, same

@@ -176,9 +176,10 @@ def march(
     transmittance), where the distance walked reaches ``max_distance`` (the optical depth
     between two points), whichever comes first, or where the ray leaves the medium. When an
     array ``lengths`` is given, ``length_weight`` x (length inside the voxel) is added to
-    ``lengths[ix, iy, iz]`` for every voxel crossed: the derivative of ``length_weight`` x
-    (-log transmittance) with respect to each voxel's extinction, which the gradient
-    estimators need. A :class:`Trail` records the crossings.
+    ``lengths[ix, iy, iz]`` for every voxel crossed: for the exponential, the derivative of
+    ``length_weight`` x (-log transmittance) with respect to each voxel's extinction, which
+    the gradient estimators need (under a non-exponential transmittance, see below). A
+    :class:`Trail` records the crossings.
 
     Under a non-exponential transmittance ``tau`` is the equivalent depth s = -log T, and
     the derivative of s at the walk's end with respect to voxel k's extinction is l_k
@@ -292,7 +293,8 @@ def require_exponential(grid, what: str) -> None:
         raise ValueError(
             f"{what} under a non-exponential transmittance (the medium's transmittance "
             "attribute) are not implemented: use the path score function (estimator "
-            "'score', no path recycling), or retrieve under the exponential assumption"
+            "'score', no path recycling) for the power law, or retrieve under the "
+            "exponential assumption"
         )
 
 

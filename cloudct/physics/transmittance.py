@@ -119,9 +119,10 @@ def depth_step(family: int, s: float, m: float, dtau: float) -> tuple[float, flo
     h(u_out) / h(u_in), the log of its hazard ratio (the module docstring's Q factor)."""
     if is_exponential(family, m):
         return s + dtau, 0.0
-    if family == GAMMA:  # u = f^-1(e^-s) = expm1(m s) / m, s = log1p(m u) / m, h = e^(-m s)
-        s_out = math.log1p(math.expm1(m * s) + m * dtau) / m
-        return s_out, -m * (s_out - s)
+    if family == GAMMA:  # u = f^-1(e^-s) = expm1(m s) / m, s = log1p(m u) / m, h = e^(-m s):
+        # s_out = log1p(m (u + dtau)) / m, written without e^(m s), which overflows for small a
+        growth = math.log1p(m * dtau * math.exp(-m * s))
+        return s + growth / m, -growth
     t_in = math.exp(-s)
     u = optical_depth_of(family, t_in, m)
     t = transmittance(family, u + dtau, m)
@@ -139,8 +140,10 @@ def optical_depth_to_reach(family: int, s: float, m: float, s_target: float) -> 
     voxel (divide by the voxel's extinction for the length)."""
     if is_exponential(family, m):
         return s_target - s
-    if family == GAMMA:
-        return (math.expm1(m * s_target) - math.expm1(m * s)) / m
+    if family == GAMMA:  # (expm1(m s_target) - expm1(m s)) / m, without overflow
+        if s_target <= s:
+            return 0.0
+        return math.exp(m * s + math.log(math.expm1(m * (s_target - s)))) / m
     return (optical_depth_of(family, math.exp(-s_target), m)
             - optical_depth_of(family, math.exp(-s), m))
 

@@ -31,6 +31,7 @@ import xarray as xr
 from cloudct.mc.backend import resolve_backend
 from cloudct.mc.forward import GRADIENT, RENDER
 from cloudct.mc.render import KernelInputs, check_residual, images_dataset, kernel_inputs
+from cloudct.mc.traversal import require_exponential
 from cloudct.medium import cell_edges
 from cloudct.recycling.path_terms import flat_total_extinction
 from cloudct.recycling.replay_kernels import (
@@ -45,6 +46,7 @@ def _inputs(store: PathStore, medium: xr.Dataset) -> tuple[KernelInputs, np.ndar
     check_not_empty(store)
     check_same_grid(store, cell_edges(medium))
     k = kernel_inputs(medium, store.scene)
+    require_exponential(k.grid, "recycled paths")  # the store was recorded exponentially
     beta = flat_total_extinction(k.grid)
     if store.variable is not None:
         changed = beta[~store.variable.ravel()] != store.frozen_extinction

@@ -386,9 +386,17 @@ def fit_extinction(
         f1 = log_ratio(x1)
     if abs(f1) <= rtol:
         return math.exp(x1)
+    hull = int(np.count_nonzero(carved["hull"] if isinstance(carved, xr.Dataset) else carved))
+    why = (
+        f"the hull's {hull} voxels are too few to be as bright as the cloud: its cloudy-pixel "
+        "masks are probably too strict or too noisy (measurements of more photons, a lower "
+        "threshold or a smaller k keep more voxels)" if f1 < 0.0 else
+        "even a nearly empty hull renders brighter than the measurements (measurements no "
+        "brighter than the clear sky, or the wrong optics, sun or ground)"
+    )
     raise ValueError(
         f"no hull extinction matches the measured brightness (last {math.exp(x1):.4g} km-1 "
-        f"off by {100 * (math.exp(f1) - 1):+.1f} %)"
+        f"off by {100 * (math.exp(f1) - 1):+.1f} %): {why}"
     )
 
 

@@ -26,10 +26,11 @@ from tqdm.auto import tqdm
 from cloudct.distributed.executor import executor
 from cloudct.mc.gradient import gradient_estimate
 from cloudct.mc.scene import Scene
+from cloudct.mc.traversal import require_smooth_flight_density
 from cloudct.measurements import assumed_transmittance, measured_transmittance
 from cloudct.medium import cell_edges, transmittance_model, validate_medium
 from cloudct.netcdf import InputFileError, load_netcdf, require_variables, save_netcdf
-from cloudct.optics import optics_name
+from cloudct.optics import kernel_arrays, optics_name
 from cloudct.retrieval.config import (  # noqa: F401 (the settings, imported from here too)
     AVERAGING,
     OPTIMIZERS,
@@ -55,7 +56,8 @@ LOG_FIELDS = ("loss", "epsilon", "delta", "seconds", "photons", "stage", "resamp
 
 def coarse_measurements(measurements: xr.Dataset, block: int) -> xr.Dataset:
     """Measurements of cameras with ``block`` x ``block`` times larger pixels: the block
-    mean of the radiance is exactly the box-filtered radiance of the coarser pixel."""
+    mean of the radiance is exactly the box-filtered radiance of the coarser pixel. The
+    attributes (optics, noise model, transmittance) and a transmittance mode are kept."""
     if block == 1:
         return measurements
     scene = Scene.from_dataset(measurements)
@@ -69,6 +71,9 @@ def coarse_measurements(measurements: xr.Dataset, block: int) -> xr.Dataset:
     ds = Scene(cams, scene.sun, scene.boundary, scene.ground_albedo).to_dataset()
     ds["radiance"] = (("view", "row", "col"), coarse)
     ds["radiance"].attrs.update(measurements["radiance"].attrs)
+    ds.attrs = {**measurements.attrs, **ds.attrs}
+    if "transmittance_mode" in measurements:
+        ds["transmittance_mode"] = measurements["transmittance_mode"]
     return ds
 
 
@@ -140,6 +145,8 @@ class Retrieval:
         self.config = config or RetrievalConfig()
         self.measurements = measurements
         self.template = assumed_transmittance(initial, measurements, self.config.transmittance)
+        # before any work: the score function does not differentiate the linear mix
+        require_smooth_flight_density(kernel_arrays(self.template)[0], "score-function gradients")
         self.mask = (
             initial["cloud_extinction"].values > 0 if mask is None else np.asarray(mask, bool)
         )

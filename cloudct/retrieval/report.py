@@ -43,6 +43,9 @@ def write_report(
         f"{float(result.attrs.get('elapsed_s', np.nan)):.0f} s, final stage "
         f"{result.attrs.get('stage', '?')}",
         "- settings: [the run's configuration](#configuration) below",
+        f"- transmittance: retrieved under {result.attrs.get('transmittance', 'exponential')}"
+        f", the measurements made under {result.attrs.get('measurement_transmittance', '?')}"
+        " (docs/transmittance.md)",
     ]
     if "log_gradient_seconds" in result:
         stages = result["log_stage"].values.astype(int)
