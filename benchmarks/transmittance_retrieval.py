@@ -18,6 +18,8 @@ true extinction under each assumption against the measurements: the loss that re
 the truth when the assumption is wrong.
 
     python benchmarks/transmittance_retrieval.py [--minutes 15] [--shape 2] [--out DIR]
+
+Writes DIR/transmittance_retrieval.json and the figure docs/figures/transmittance_retrieval.png.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from cloudct.medium import save_medium, with_transmittance
 from cloudct.retrieval.loss import image_loss
 
 HERE = Path(__file__).resolve().parent
+FIGURE = HERE.parent / "docs" / "figures" / "transmittance_retrieval.png"
 
 #: name -> options of cloudct retrieve (besides the files and the time limit)
 RUNS = {
@@ -60,6 +63,39 @@ def loss_at_the_truth(truth, measurements, photons: int) -> dict:
         out[f"{name}_render_noise"] = 0.5 * float(np.sum(images["radiance_std_error"]
                                                          .values ** 2))
     return out
+
+
+LABELS = {"exponential_score": "exponential (score function)",
+          "medium_score": "power law, --transmittance medium (score function)",
+          "exponential_defaults": "exponential (defaults: sample matching)"}
+
+
+def figure(out: Path, names: list[str], path: Path) -> None:
+    """Epsilon and delta against wall time of the runs ``names`` in ``out``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import xarray as xr
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for name in names:
+        ds = xr.load_dataset(out / f"{name}.nc")
+        minutes = ds["log_seconds"].values / 60
+        axes[0].plot(minutes, ds["log_epsilon"].values, label=LABELS[name])
+        axes[1].plot(minutes, ds["log_delta"].values, label=LABELS[name])
+    axes[0].set_ylabel("epsilon")
+    axes[1].set_ylabel("delta (> 0: extinction missing)")
+    axes[1].axhline(0.0, color="k", lw=0.6)
+    for ax in axes:
+        ax.set_xlabel("wall time [min], 2 CPU cores")
+    axes[0].legend(fontsize=8)
+    fig.suptitle("single cloud, power-law measurements (a = 2), retrieved under each "
+                 "assumption", fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def main() -> None:
@@ -93,6 +129,7 @@ def main() -> None:
                      "100000", *RUNS[name], "-o", result, "--overwrite"], log)
         summary["runs"][name] = error_over_time(result, minutes=(5, 10, 15, 30, 60))
     summary["commands"] = log
+    figure(out, args.runs, FIGURE)
     (out / "transmittance_retrieval.json").write_text(json.dumps(summary, indent=1) + "\n")
     print(json.dumps(summary, indent=1))
 
