@@ -19,7 +19,8 @@ those a user types (printed, and stored in the results):
         [-- OPTIONS of cloudct retrieve]
 
 Epsilon and delta over time are in NAME.nc (log_seconds, log_epsilon, log_delta) and in
-DIR/NAME.json (NAME: cloud_field by default).
+DIR/NAME.json (NAME: cloud_field by default). ``--figure NAME [NAME ...]`` runs nothing and
+draws the named runs' epsilon and delta against time to docs/figures/cloud_field.png.
 """
 
 from __future__ import annotations
@@ -28,13 +29,14 @@ import argparse
 import json
 from pathlib import Path
 
-from common import error_over_time, run_command
+from common import error_figure, error_over_time, run_command
 
 from cloudct.les import seed_paper_cloud_field
 from cloudct.medium import save_medium
 from cloudct.optics import to_optical
 
 HERE = Path(__file__).resolve().parent
+FIGURE = HERE.parent / "docs" / "figures" / "cloud_field.png"
 
 
 def main() -> None:
@@ -44,10 +46,16 @@ def main() -> None:
     parser.add_argument("--workers", type=int, help="retrieve on a local Dask cluster")
     parser.add_argument("--name", default="cloud_field", help="of the result files")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "cloud_field")
+    parser.add_argument("--figure", nargs="+", metavar="NAME",
+                        help="only draw these runs' epsilon and delta against time")
     parser.add_argument("retrieve_options", nargs=argparse.REMAINDER,
                         help="after --: more options of cloudct retrieve (e.g. --config FILE)")
     args = parser.parse_args()
     out = args.out
+    if args.figure:
+        error_figure({name: out / f"{name}.nc" for name in args.figure}, FIGURE,
+                     "the seed paper's cloud field (79 x 84 x 27), from the carved start")
+        return
     out.mkdir(parents=True, exist_ok=True)
     truth = to_optical(seed_paper_cloud_field())
     save_medium(truth, out / "truth.nc", overwrite=True)

@@ -1,6 +1,6 @@
 """Pieces the benchmark scripts share: the run header of a result file, Markdown tables,
 the writing of results, and runs of cloudct commands with the error of a retrieval over
-time."""
+time, as numbers and as a figure."""
 
 from __future__ import annotations
 
@@ -79,3 +79,30 @@ def error_over_time(result: str | Path, minutes=(5, 15, 30, 60)) -> dict:
             "final": {"epsilon": float(ds["log_epsilon"].values[-1]),
                       "delta": float(ds["log_delta"].values[-1])},
             "over_time": marks}
+
+
+def error_figure(runs: dict[str, Path], path: Path, title: str) -> None:
+    """Epsilon and delta against wall time of retrieval results (``cloudct retrieve``'s
+    netCDF files), one curve per ``label: file`` of ``runs``, saved to ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for label, result in runs.items():
+        ds = xr.load_dataset(result)
+        minutes = ds["log_seconds"].values / 60
+        axes[0].plot(minutes, ds["log_epsilon"].values, label=label)
+        axes[1].plot(minutes, ds["log_delta"].values, label=label)
+    axes[0].set_ylabel("epsilon")
+    axes[1].set_ylabel("delta (> 0: extinction missing)")
+    axes[1].axhline(0.0, color="k", lw=0.6)
+    for ax in axes:
+        ax.set_xlabel("wall time [min], 2 CPU cores")
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -7,7 +7,10 @@ levels) with the single cloud's optics (HG g = 0.85, cloud albedo 0.99, the file
 - 10^5 and 10^6 voxels: that piece tiled 3 x 3 and 10 x 10 times (48 x 48 and 160 x 160
   columns), so that the cloud fraction, and the paths, stay those of the 10^4 piece and
   the cost per photon shows what grows with the grid alone;
-- the whole field (122 x 106 columns, 5 x 10^5 voxels, 3% cloudy): a real field's mix.
+- the whole field (122 x 106 columns, 5 x 10^5 voxels, 3% cloudy): a real field's mix;
+- ``256x256x100`` (6.6 x 10^6 voxels, a research LES domain's size): the piece tiled
+  16 x 16 and **upsampled** in z from 39 levels of 40 m to 100 of 15.6 m (each new level
+  takes the nearest LES level: the same cloud, its optical depths unchanged).
 
 Scene: nine 76 x 76 cameras (zenith and a ring at 29 degrees) aimed at the box centre from
 max(2 km, 1.5 x the box's horizontal diagonal), the field of view fitted to the box, sun at
@@ -17,9 +20,13 @@ the times by a warm-up call. Reported per case: the forward render's wall time, 
 path vertices per second; the score-function gradient's wall time (random residual, every
 pixel non-zero); the bytes of a path store (``record_paths``, default storage) per path and
 per event; the peak memory. ``--photon-scan``: the render's time against the photons on the
-10^5-voxel piece. Usage::
+10^5-voxel piece. ``--backend cuda``: render and gradients on the GPU (no path store, which
+is recorded on the CPU; the GPU's peak memory is read outside, e.g. by nvidia-smi).
+``--sample-matching``: also the sample-matching gradient (the retrieval's default estimator;
+as many paths as the score function's photons, pixels drawn from the residual). Usage::
 
-    python benchmarks/cost_tables.py [--photons 200000] [--photon-scan]
+    python benchmarks/cost_tables.py [--photons 200000] [--photon-scan] [--backend cuda]
+        [--sizes 1e4 1e5 1e6 field 256x256x100] [--sample-matching]
         [--output benchmarks/results/cost_tables]
 """
 
@@ -41,21 +48,25 @@ sys.path.insert(0, str(HERE))
 
 from common import markdown_table, run_header, write_json_and_markdown  # noqa: E402
 
-#: case: tiles of the 16 x 16-column piece per side (None: the whole field)
-SIZES = {"1e4": 1, "1e5": 3, "1e6": 10, "field": None}
+#: case: (tiles of the 16 x 16-column piece per side, levels or None for the LES's) or
+#: None for the whole field
+SIZES = {"1e4": (1, None), "1e5": (3, None), "1e6": (10, None), "field": None,
+         "256x256x100": (16, 100)}
+#: the cases of the table by default
+DEFAULT_SIZES = ("1e4", "1e5", "1e6", "field")
 PIECE = 16
 
 
 def field_piece(size: str):
     """The medium of one case (module documentation)."""
     import xarray as xr
-    from scenes import LES, single_cloud_optics
+    from scenes import single_cloud_optics
 
-    from cloudct.les import read_les
+    from cloudct.les import bundled_cloud_field
 
-    les = read_les(LES / "rico122x106x39.txt")
-    tiles = SIZES[size]
-    if tiles is not None:
+    les = bundled_cloud_field()  # the bundled copy of rico122x106x39
+    if SIZES[size] is not None:
+        tiles, levels = SIZES[size]
         lwp = les["lwc"].sum("z").values
         i, j = np.unravel_index(int(np.argmax(lwp)), lwp.shape)
         i0 = int(np.clip(i - PIECE // 2, 0, les.sizes["x"] - PIECE))
@@ -76,6 +87,12 @@ def field_piece(size: str):
         for name in piece.data_vars:
             if name not in les:
                 les[name] = piece[name]
+        if levels is not None:  # the same bottom and top, thinner levels
+            z = les.z.values
+            dz = (z[-1] - z[0]) / (len(z) - 1)
+            centres = z[0] - dz / 2 + (np.arange(levels) + 0.5) * dz * len(z) / levels
+            les = les.sel(z=centres, method="nearest").assign_coords(
+                z=("z", centres, piece.z.attrs))
     return single_cloud_optics(les, f"rico122x106x39 piece {size}")
 
 
@@ -92,9 +109,10 @@ def scene_for(medium):
     return Scene(nine_camera_set(lo, hi, distance=distance), Sun(0.0, 0.0), "open")
 
 
-def run_case(size: str, photons: int, gradient: bool, store: bool) -> dict:
+def run_case(size: str, photons: int, gradient: bool, store: bool, backend: str = "cpu",
+             sample_matching: bool = False) -> dict:
     """One case, in this process."""
-    from cloudct.mc.gradient import score_function_gradient
+    from cloudct.mc.gradient import gradient_estimate, score_function_gradient
     from cloudct.mc.render import render_batches
     from cloudct.recycling import record_paths
 
@@ -103,18 +121,25 @@ def run_case(size: str, photons: int, gradient: bool, store: bool) -> dict:
     shape = medium["cloud_extinction"].shape
     out = {"size": size, "shape": list(shape), "voxels": int(np.prod(shape)),
            "cloudy_voxels": int((medium["cloud_extinction"].values > 0).sum()),
-           "photons": photons}
-    render_batches(medium, scene, photons=64, progress=False)  # JIT warm-up
-    _, info = render_batches(medium, scene, photons=photons, progress=False)
+           "photons": photons, "backend": backend}
+    render_batches(medium, scene, photons=64, progress=False, backend=backend)  # JIT warm-up
+    _, info = render_batches(medium, scene, photons=photons, progress=False, backend=backend)
     out.update(render_s=info["wall_time"], photons_per_s=info["photons"] / info["wall_time"],
                vertices_per_photon=info["events"] / info["photons"],
                vertices_per_s=info["events"] / info["wall_time"])
+    residual = np.random.default_rng(0).normal(size=(9, 76, 76))
     if gradient:
-        residual = np.random.default_rng(0).normal(size=(9, 76, 76))
-        score_function_gradient(medium, scene, residual, photons=64, progress=False)
+        kw = dict(progress=False, backend=backend)
+        score_function_gradient(medium, scene, residual, photons=64, **kw)
         t = time.perf_counter()
-        score_function_gradient(medium, scene, residual, photons=photons // 2, progress=False)
+        score_function_gradient(medium, scene, residual, photons=photons // 2, **kw)
         out["gradient_s_per_photon"] = (time.perf_counter() - t) / (photons // 2)
+    if sample_matching:
+        kw = dict(estimator="sm", pixel_sampling="residual", progress=False, backend=backend)
+        gradient_estimate(medium, scene, residual, paths=64, **kw)
+        t = time.perf_counter()
+        _, _, sm = gradient_estimate(medium, scene, residual, paths=photons // 2, **kw)
+        out["sm_gradient_s_per_path"] = (time.perf_counter() - t) / sm["photons"]
     if store:
         paths = max(photons // 10, 320)
         s = record_paths(medium, scene, photons=paths)
@@ -124,28 +149,41 @@ def run_case(size: str, photons: int, gradient: bool, store: bool) -> dict:
     return out
 
 
-def in_subprocess(size: str, photons: int, gradient: bool, store: bool) -> dict:
+def in_subprocess(size: str, photons: int, gradient: bool, store: bool, backend: str = "cpu",
+                  sample_matching: bool = False) -> dict:
+    call = f"{size!r}, {photons}, {gradient}, {store}, {backend!r}, {sample_matching}"
     code = (f"import sys, json; sys.path.insert(0, {str(HERE)!r}); import cost_tables as c; "
-            f"print('RESULT', json.dumps(c.run_case({size!r}, {photons}, {gradient}, {store})))")
+            f"print('RESULT', json.dumps(c.run_case({call})))")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          check=True, cwd=HERE.parent)
+                          cwd=HERE.parent)
+    if proc.returncode != 0:
+        raise RuntimeError(f"case {size} failed:\n{proc.stderr}")
     line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT ")][-1]
     return json.loads(line[len("RESULT "):])
 
 
 def markdown(result: dict) -> str:
-    rows = [[c["size"], "x".join(map(str, c["shape"])), str(c["cloudy_voxels"]),
-             f"{c['render_s']:.1f}", f"{c['photons_per_s']:.3g}",
-             f"{c['vertices_per_photon']:.1f}", f"{c['vertices_per_s']:.3g}",
-             f"{1e6 * c['gradient_s_per_photon']:.1f}",
-             f"{c['store_bytes'] / 2**20:.1f} ({c['store_storage']})",
-             f"{c['store_bytes_per_event']:.0f}", f"{c['peak_rss_mib']:.0f}"]
-            for c in result["voxels"]]
+    cases = result["voxels"]
+    columns = {
+        "voxels": lambda c: c["size"],
+        "grid": lambda c: "x".join(map(str, c["shape"])),
+        "cloudy": lambda c: str(c["cloudy_voxels"]),
+        "render s": lambda c: f"{c['render_s']:.1f}",
+        "photons/s": lambda c: f"{c['photons_per_s']:.3g}",
+        "vertices/photon": lambda c: f"{c['vertices_per_photon']:.1f}",
+        "vertices/s": lambda c: f"{c['vertices_per_s']:.3g}",
+        "gradient us/photon": lambda c: f"{1e6 * c['gradient_s_per_photon']:.2f}",
+    }
+    if all("sm_gradient_s_per_path" in c for c in cases):
+        columns["sm gradient us/path"] = lambda c: f"{1e6 * c['sm_gradient_s_per_path']:.2f}"
+    if all("store_bytes" in c for c in cases):
+        columns["store MiB"] = lambda c: f"{c['store_bytes'] / 2**20:.1f} ({c['store_storage']})"
+        columns["store B/event"] = lambda c: f"{c['store_bytes_per_event']:.0f}"
+    columns["peak RSS MiB"] = lambda c: f"{c['peak_rss_mib']:.0f}"
+    stored = ", a tenth recorded in the path store" if "store MiB" in columns else ""
     lines = [f"{result['photons']} photons per render (32 batches), half as many per "
-             "gradient, a tenth recorded in the path store.", ""]
-    lines += markdown_table(["voxels", "grid", "cloudy", "render s", "photons/s",
-                             "vertices/photon", "vertices/s", "gradient us/photon",
-                             "store MiB", "store B/event", "peak RSS MiB"], rows)
+             f"gradient{stored}; back end {result.get('device', result['backend'])}.", ""]
+    lines += markdown_table(list(columns), [[f(c) for f in columns.values()] for c in cases])
     if result.get("photon_scan"):
         lines += ["", "Render time against photons (10^5 voxels):", ""]
         lines += markdown_table(["photons", "render s", "photons/s"],
@@ -158,15 +196,24 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--photons", type=int, default=200_000)
     parser.add_argument("--photon-scan", action="store_true")
+    parser.add_argument("--backend", choices=("cpu", "cuda"), default="cpu")
+    parser.add_argument("--sizes", nargs="+", choices=list(SIZES), default=list(DEFAULT_SIZES))
+    parser.add_argument("--sample-matching", action="store_true")
     parser.add_argument("--output", default=str(HERE / "results" / "cost_tables"))
     args = parser.parse_args()
-    result = {**run_header(), "photons": args.photons, "voxels": []}
-    for size in SIZES:
-        case = in_subprocess(size, args.photons, True, True)
+    store = args.backend == "cpu"
+    result = {**run_header(), "photons": args.photons, "backend": args.backend, "voxels": []}
+    if args.backend == "cuda":
+        from gpu_forward import device_name
+
+        result["device"] = device_name("cuda")
+    for size in args.sizes:
+        case = in_subprocess(size, args.photons, True, store, args.backend, args.sample_matching)
         print(case, flush=True)
         result["voxels"].append(case)
+        write_json_and_markdown(result, args.output, markdown)  # what is done, if cut off
     if args.photon_scan:
-        result["photon_scan"] = [in_subprocess("1e5", p, False, False)
+        result["photon_scan"] = [in_subprocess("1e5", p, False, False, args.backend)
                                  for p in (50_000, 200_000, 800_000)]
     write_json_and_markdown(result, args.output, markdown)
 

@@ -29,7 +29,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from common import error_over_time, run_command, run_header
+from common import error_figure, error_over_time, run_command, run_header
 
 from cloudct.mc.render import render, single_cloud_medium
 from cloudct.mc.scene import Scene
@@ -70,34 +70,6 @@ LABELS = {"exponential_score": "exponential (score function)",
           "exponential_defaults": "exponential (defaults: sample matching)"}
 
 
-def figure(out: Path, names: list[str], path: Path) -> None:
-    """Epsilon and delta against wall time of the runs ``names`` in ``out``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import xarray as xr
-
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
-    for name in names:
-        ds = xr.load_dataset(out / f"{name}.nc")
-        minutes = ds["log_seconds"].values / 60
-        axes[0].plot(minutes, ds["log_epsilon"].values, label=LABELS[name])
-        axes[1].plot(minutes, ds["log_delta"].values, label=LABELS[name])
-    axes[0].set_ylabel("epsilon")
-    axes[1].set_ylabel("delta (> 0: extinction missing)")
-    axes[1].axhline(0.0, color="k", lw=0.6)
-    for ax in axes:
-        ax.set_xlabel("wall time [min], 2 CPU cores")
-    axes[0].legend(fontsize=8)
-    fig.suptitle("single cloud, power-law measurements (a = 2), retrieved under each "
-                 "assumption", fontsize=10)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--minutes", type=float, default=15.0, help="per retrieval")
@@ -129,7 +101,9 @@ def main() -> None:
                      "100000", *RUNS[name], "-o", result, "--overwrite"], log)
         summary["runs"][name] = error_over_time(result, minutes=(5, 10, 15, 30, 60))
     summary["commands"] = log
-    figure(out, args.runs, FIGURE)
+    error_figure({LABELS[name]: out / f"{name}.nc" for name in args.runs}, FIGURE,
+                 "single cloud, power-law measurements (a = 2), retrieved under each "
+                 "assumption")
     (out / "transmittance_retrieval.json").write_text(json.dumps(summary, indent=1) + "\n")
     print(json.dumps(summary, indent=1))
 

@@ -91,12 +91,14 @@ def test_cli_demo_on_the_cloud_field(tmp_path, capsys):
         assert got.nrows == 86
     result = xr.load_dataset(out / "result.nc")
     assert RetrievalConfig(**json.loads(result.attrs["config"])) == RetrievalConfig(
-        iterations=1, photons=2_000, sparsity=0.01)
+        iterations=1, photons=2_000, step=0.5, sparsity=0.01, averaging="ema")
 
     assert main(["demo", "--scene", "cloud-field", "--write-config"]) == 0
-    assert "iterations = 90" in capsys.readouterr().out
+    field = capsys.readouterr().out
+    assert "photons = 300000" in field and "step = 0.5" in field
     assert main(["demo", "--write-config"]) == 0
-    assert "iterations = 60" in capsys.readouterr().out
+    single = capsys.readouterr().out
+    assert "photons = 50000" in single and "step = 1.0" in single
     with pytest.raises(SystemExit) as refused:
         main(["demo", "--scene", "cumulus", "-o", str(tmp_path / "other")])
     assert refused.value.code == 2

@@ -30,11 +30,11 @@ from numba import config, cuda  # noqa: E402
 
 from cloudct.mc.cameras import Camera  # noqa: E402
 from cloudct.mc.forward import RESIDUAL, trace_photon  # noqa: E402
-from cloudct.mc.gradient import score_function_gradient  # noqa: E402
+from cloudct.mc.gradient import gradient_estimate, score_function_gradient  # noqa: E402
 from cloudct.mc.render import kernel_inputs, render_batches  # noqa: E402
 from cloudct.mc.scene import Scene  # noqa: E402
 from cloudct.mc.sun import Sun  # noqa: E402
-from cloudct.medium import optical_medium  # noqa: E402
+from cloudct.medium import optical_medium, with_transmittance  # noqa: E402
 from cloudct.recycling import (  # noqa: E402
     correction_log_weights,
     record_paths,
@@ -98,9 +98,20 @@ def test_same_photon_same_path_on_the_gpu():
     )
 
 
-@pytest.mark.parametrize("method, photons", [("forward", 400_000), ("backward", 256)])
-def test_gpu_images_agree_with_cpu(method, photons):
+def power_law(medium):
+    """The medium under the power-law transmittance, shapes a = 0.5, 2 and inf."""
+    shape = medium["cloud_extinction"].shape
+    return with_transmittance(medium, "gamma", np.resize([0.5, 2.0, np.inf], shape))
+
+
+@pytest.mark.parametrize("method, photons, transmittance", [
+    ("forward", 400_000, "exponential"), ("backward", 256, "exponential"),
+    ("forward", 400_000, "gamma"), ("backward", 256, "gamma"),
+])
+def test_gpu_images_agree_with_cpu(method, photons, transmittance):
     medium, scene = medium_and_scene()
+    if transmittance == "gamma":
+        medium = power_law(medium)
     kw = dict(photons=photons, batches=BATCHES, method=method, progress=False)
     cpu, _ = render_batches(medium, scene, seed=1, backend="cpu", **kw)
     gpu, info = render_batches(medium, scene, seed=2, backend="cuda", **kw)
@@ -113,14 +124,37 @@ def test_gpu_images_agree_with_cpu(method, photons):
     )
 
 
-def test_gpu_gradient_agrees_with_cpu():
+@pytest.mark.parametrize("transmittance", ["exponential", "gamma"])
+def test_gpu_gradient_agrees_with_cpu(transmittance):
     medium, scene = medium_and_scene()
+    if transmittance == "gamma":
+        medium = power_law(medium)
     residual = np.random.default_rng(2).normal(size=(2, 8, 8))
     kw = dict(photons=400_000, batches=BATCHES, progress=False)
     cpu = score_function_gradient(medium, scene, residual, seed=1, backend="cpu", **kw)
     gpu = score_function_gradient(medium, scene, residual, seed=2, backend="cuda", **kw)
     assert gpu[2]["backend"] == "cuda"
-    assert_consistent(gpu[0], gpu[1], cpu[0], BATCHES, cpu[1], label="gradient GPU vs CPU")
+    assert_consistent(gpu[0], gpu[1], cpu[0], BATCHES, cpu[1],
+                      label=f"gradient GPU vs CPU ({transmittance})")
+
+
+@pytest.mark.parametrize("estimator, pixel_sampling", [
+    ("drt", "uniform"), ("sm", "uniform"), ("sm", "residual"),
+])
+def test_gpu_camera_gradient_agrees_with_cpu(estimator, pixel_sampling):
+    """The camera-side estimators (DRT, sample matching; pixels per pixel or drawn from the
+    residual) on the GPU against the CPU, independent seeds."""
+    medium, scene = medium_and_scene()
+    residual = np.random.default_rng(2).normal(size=(2, 8, 8))
+    kw = dict(estimator=estimator, paths=128 * 2 * 8 * 8, batches=BATCHES,
+              pixel_sampling=pixel_sampling)
+    cpu = gradient_estimate(medium, scene, residual, seed=1, backend="cpu", **kw)
+    gpu = gradient_estimate(medium, scene, residual, seed=2, backend="cuda", **kw)
+    assert gpu[2]["backend"] == "cuda"
+    seen = np.hypot(gpu[1], cpu[1]) > 0  # voxels that some path of either run reached
+    assert seen.mean() > 0.9
+    assert_consistent(gpu[0][seen], gpu[1][seen], cpu[0][seen], BATCHES, cpu[1][seen],
+                      label=f"{estimator} ({pixel_sampling}) GPU vs CPU")
 
 
 @pytest.mark.parametrize("storage", [s for s in STORAGE if s != "auto"])
