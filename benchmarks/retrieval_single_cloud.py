@@ -184,6 +184,7 @@ def main() -> None:
     log = {k: [float(x) for x in v] for k, v in run.state.log.items()}
     result["log"] = log
     result["iterations"] = run.state.iteration
+    result["decisions"] = run.state.decisions
     result["final"] = {"epsilon": log["epsilon"][-1], "delta": log["delta"][-1],
                        "loss": log["loss"][-1], "seconds": log["seconds"][-1],
                        "stage": log["stage"][-1]}

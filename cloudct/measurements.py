@@ -139,6 +139,7 @@ def synthesize_measurements(
     optics: str | None = None,
     batches: int = 32,
     progress: bool | None = None,
+    backend: str = "cpu",
 ) -> xr.Dataset:
     """Synthetic measurements of ``medium``: a forward render plus optional camera noise.
 
@@ -157,6 +158,8 @@ def synthesize_measurements(
             None: its recorded choice, else the default). The file records the optics used.
         batches: independent batches of the render (for its standard errors).
         progress: show a progress bar (None: only on a terminal).
+        backend: where the render runs, ``"cpu"``, ``"cuda"`` or ``"auto"``
+            (:mod:`cloudct.mc.backend`); recorded in the attribute ``backend``.
 
     Returns:
         The measurement set described in the module docstring.
@@ -181,7 +184,7 @@ def synthesize_measurements(
             np.array([e[0] for e in edges]), np.array([e[-1] for e in edges])
         )
     images = render(medium, scene, photons=photons, seed=seed, batches=batches,
-                    progress=progress)
+                    progress=progress, backend=backend)
 
     clean = images["radiance"].values
     mc_variance = images["radiance_std_error"].values ** 2

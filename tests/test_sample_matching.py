@@ -156,6 +156,11 @@ def test_gradient_estimate_chooses_the_estimator_by_name():
                                          batches=4)
     np.testing.assert_array_equal(g, ref)
     assert info["estimator"] == "sm" and info["photons"] == 32 * 64
+    # residual-drawn pixels: as many samples as asked for, to whole samples per pixel (4 of
+    # each of the 32 pixels), not one sample of each pixel in each of the 32 batches
+    _, _, drawn = gradient_estimate(medium, scene, r, estimator="sm", paths=100, seed=2,
+                                    batches=32, pixel_sampling="residual")
+    assert np.count_nonzero(r) == 32 and drawn["photons"] == 4 * 32
     with pytest.raises(ValueError, match="estimator must be one of"):
         gradient_estimate(medium, scene, r, estimator="mis", paths=64)
     with pytest.raises(ValueError, match="camera-side"):

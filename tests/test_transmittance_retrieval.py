@@ -22,7 +22,8 @@ from cloudct.measurements import (
     synthesize_measurements,
 )
 from cloudct.medium import MediumError, save_medium, transmittance_model, with_transmittance
-from cloudct.retrieval.config import RetrievalConfig, config_to_toml, parse_config
+from cloudct.retrieval.config import RetrievalConfig
+from cloudct.retrieval.config_file import config_to_toml, parse_config
 from cloudct.retrieval.loop import Retrieval, run_id
 from cloudct.retrieval.metrics import epsilon_delta
 
@@ -109,7 +110,7 @@ def test_a_tiny_retrieval_under_the_model_lowers_epsilon(tmp_path, power_law_mea
     it); through the command line, --transmittance medium."""
     truth = power_law_truth()
     config = RetrievalConfig(transmittance="medium", iterations=30, photons=40_000, step=1.0,
-                             stages=(2,), saturation_window=3, checkpoint_every=10)
+                             stages=(2,), saturation_window=5, checkpoint_every=10)
     result = Retrieval(power_law_measurements, initial_guess(), config,
                        truth=truth).run(progress=False)
     eps0, _ = epsilon_delta(truth["cloud_extinction"].values,

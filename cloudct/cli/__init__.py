@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import sys
 
 #: Modules that contribute subcommands, in the order ``--help`` lists them.
@@ -18,6 +19,7 @@ COMMAND_MODULES = (
     "cloudct.cli.synth",
     "cloudct.cli.carve",
     "cloudct.cli.retrieve",
+    "cloudct.cli.cache",
 )
 
 
@@ -38,6 +40,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``cloudct`` console command."""
+    log = logging.getLogger("cloudct")  # what a run decides on its own, one line each
+    if not log.handlers:
+        log.addHandler(logging.StreamHandler(sys.stderr))
+        log.setLevel(logging.INFO)
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:

@@ -5,7 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from cloudct.cli.options import add_optics_option, measured_optics, medium_from_options
+from cloudct.cli.options import (
+    add_backend_option,
+    add_optics_option,
+    chosen_backend,
+    measured_optics,
+    medium_from_options,
+)
 from cloudct.measurements import load_measurements
 from cloudct.medium import save_medium
 from cloudct.retrieval.carving import (
@@ -27,6 +33,7 @@ def _cli_carve(args: argparse.Namespace) -> int:
     carved = carve(
         measurements, template, k=args.k, threshold=args.threshold, profile=args.profile,
         fit_photons=args.fit_photons if args.extinction is None else None,
+        backend=chosen_backend(args) if args.extinction is None else "cpu",
     )
     medium = initial_medium(carved, template, args.extinction)
     save_medium(medium, output, overwrite=args.overwrite)
@@ -70,5 +77,6 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
                    help="photons per trial render of the extinction fit")
     p.add_argument("--figure", help="PNG of the views with the cloudy pixels and the hull")
     add_optics_option(p, "Default: the measurements' recorded optics, else 'hg'")
+    add_backend_option(p)
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cli_carve)

@@ -3,18 +3,49 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 import xarray as xr
 
+from cloudct.mc.backend import (
+    BACKENDS,
+    cuda_unavailable_reason,
+    device_description,
+    resolve_backend,
+)
 from cloudct.mc.render import single_cloud_medium
 from cloudct.medium import load_medium
 from cloudct.optics import DEFAULT_OPTICS, OPTICS, with_optics
 
 
+def add_backend_option(p: argparse.ArgumentParser, workers: bool = False) -> None:
+    """``--backend cpu|cuda|auto`` (default auto: the GPU where one is found)."""
+    p.add_argument("--backend", choices=BACKENDS, default="auto",
+                   help="where the photons are traced: cuda (a GPU), cpu, or auto (the "
+                   "default: the GPU where numba-cuda finds one, else the CPU)"
+                   + ("; with --workers/--scheduler, on the workers" if workers else ""))
+
+
+def chosen_backend(args: argparse.Namespace) -> str:
+    """``"cpu"`` or ``"cuda"`` for ``--backend`` (:func:`cloudct.mc.backend.resolve_backend`):
+    with ``auto``, the GPU where one is found, saying so in one line on stderr, else the CPU
+    (silently: the usual case, whose messages stay one line); a back end asked for that
+    cannot run is a one-line error."""
+    if args.backend == "auto":
+        if cuda_unavailable_reason() is not None:
+            return "cpu"
+        print(f"cloudct {args.command}: running on {device_description('cuda')}",
+              file=sys.stderr)
+        return "cuda"
+    try:
+        return resolve_backend(args.backend)
+    except RuntimeError as err:
+        raise ValueError(str(err)) from None
+
+
 def add_distributed_options(p: argparse.ArgumentParser) -> None:
     """``--backend``, ``--workers`` and ``--scheduler`` (see docs/distributed.md)."""
-    p.add_argument("--backend", choices=("cpu", "cuda", "auto"), default="cpu",
-                   help="compute back end (on the workers, with --workers/--scheduler)")
+    add_backend_option(p, workers=True)
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, metavar="N",
                        help="trace on a local Dask cluster of N worker processes (one per "

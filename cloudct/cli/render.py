@@ -7,7 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from cloudct.cli.options import add_distributed_options, add_optics_option, medium_from_options
+from cloudct.cli.options import (
+    add_distributed_options,
+    add_optics_option,
+    chosen_backend,
+    medium_from_options,
+)
 from cloudct.distributed import close_client, connect, executor
 from cloudct.mc.render import METHODS, render, save_images, save_previews
 from cloudct.mc.scene import BOUNDARIES, PRESETS, build_scene, load_scene, single_cloud_scene
@@ -32,17 +37,20 @@ def _cli_render(args: argparse.Namespace) -> int:
         raise FileExistsError(f"{output} exists (use --overwrite)")
     if args.fluxes or args.probe:
         return _render_fluxes(args, medium, scene, output)
-    client = connect(args.scheduler, args.workers, backend=args.backend)
+    backend = chosen_backend(args)  # this process's; a scheduler's workers resolve theirs
+    client = connect(args.scheduler, args.workers, backend=backend)
     spread = None if client is None else executor(client)
+    if args.scheduler:
+        backend = args.backend
     try:
         # compile (or load from the numba cache) first, so that the reported rate is the
         # render's
         render(medium, scene, photons=2, method=args.method, batches=2, progress=False,
-               backend=args.backend, executor=spread)
+               backend=backend, executor=spread)
         images = render(
             medium, scene, photons=args.photons, method=args.method, seed=args.seed,
             batches=args.batches, aim_fraction=args.aim_fraction, progress=None,
-            backend=args.backend, executor=spread,
+            backend=backend, executor=spread,
         )
     finally:
         if client is not None:
@@ -69,11 +77,12 @@ def _render_fluxes(args: argparse.Namespace, medium, scene, output: Path) -> int
     if args.method != "forward" or args.workers or args.scheduler:
         raise ValueError("--fluxes and --probe run the forward method in this process "
                          "(no --method backward, --workers or --scheduler)")
+    if args.backend == "cuda":
+        raise ValueError("--fluxes and --probe run on the CPU only (--backend cpu or auto)")
     means = domain_means(
         medium, directions=args.probe or [], sun=scene.sun, boundary=scene.boundary,
         ground_albedo=scene.ground_albedo, photons=args.photons, seed=args.seed,
-        batches=args.batches, aim_fraction=args.aim_fraction, progress=None,
-        backend=args.backend,
+        batches=args.batches, aim_fraction=args.aim_fraction, progress=None, backend="cpu",
     )
     save_netcdf(means, output, overwrite=args.overwrite)
     shares = ", ".join(f"{name} {float(means[name]):.4g} +- {float(means[name + '_std_error']):.2g}"

@@ -13,8 +13,10 @@ import numpy as np
 import xarray as xr
 
 from cloudct.cli.options import (
+    add_backend_option,
     add_distributed_options,
     add_optics_option,
+    chosen_backend,
     measured_optics,
     medium_from_options,
 )
@@ -29,14 +31,19 @@ from cloudct.netcdf import load_netcdf, require_variables
 from cloudct.optics import DEFAULT_OPTICS, to_optical
 from cloudct.retrieval.carving import carve, initial_medium
 from cloudct.retrieval.config import (
+    AUTO,
     AVERAGING,
-    DEPENDENT,
     OPTIMIZERS,
     RECYCLING,
-    STAGE_FIELDS,
+    SPARSITY,
+    SPARSITY_SCHEDULES,
     TRANSMITTANCE,
-    ResumeConflict,
     RetrievalConfig,
+)
+from cloudct.retrieval.config_file import (
+    DEPENDENT,
+    STAGE_FIELDS,
+    ResumeConflict,
     config_from_settings,
     config_to_toml,
     load_config,
@@ -44,7 +51,9 @@ from cloudct.retrieval.config import (
     toml_value,
 )
 from cloudct.retrieval.loop import Retrieval
+from cloudct.retrieval.photon_budget import TARGET_SECONDS, target_seconds
 from cloudct.retrieval.report import write_report
+from cloudct.retrieval.schedule import PLATEAU_ANSWERS, SCHEDULES
 
 
 def _refuse_overwrite(path: Path, overwrite: bool) -> None:
@@ -53,14 +62,16 @@ def _refuse_overwrite(path: Path, overwrite: bool) -> None:
 
 
 def _initial_medium(
-    measurements: xr.Dataset, init: str, template: str | None, optics: str | None
+    measurements: xr.Dataset, init: str, template: str | None, optics: str | None,
+    backend: str,
 ) -> xr.Dataset:
     """The starting medium: space carving of the measurements on the template's grid (with
-    the measurements' optics unless ``optics`` is given), or a medium file."""
+    the measurements' optics unless ``optics`` is given; its fit renders on ``backend``), or
+    a medium file."""
     if init != "carve":
         return load_medium(init)
     grid = medium_from_options(template, measured_optics(measurements, optics))
-    return initial_medium(carve(measurements, grid), grid)
+    return initial_medium(carve(measurements, grid, backend=backend), grid)
 
 
 #: The demo's run settings (``cloudct demo``; ``cloudct retrieve --config`` reads it too).
@@ -90,7 +101,8 @@ OPTION_FIELDS = {dest: dest for dest in (
     "recycling", "period", "min_ess", "recycling_memory", "stages", "stage_photons",
     "voxel_blocks", "stage_steps", "gradient_smoothing", "image_photons", "saturation_window",
     "step_decay", "estimator", "pixel_sampling", "averaging", "averaging_decay", "seed",
-    "checkpoint_every", "transmittance",
+    "checkpoint_every", "transmittance", "iteration_seconds", "schedule", "significance",
+    "plateau", "photon_growth", "photon_cap", "step_floor", "max_change", "sparsity_schedule",
 )} | {"fresh_gradient": "recycle_gradient"}  # --fresh-gradient: recycle_gradient = false
 OPTION_NAMES = {field: "--" + dest.replace("_", "-") for dest, field in OPTION_FIELDS.items()}
 
@@ -197,15 +209,16 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
         config_from_settings(settings)
     measurements = load_measurements(args.measurements)
     truth = load_medium(args.truth) if args.truth else None
-    initial = _initial_medium(measurements, args.init, args.medium, args.optics)
     checkpoint = Path(args.checkpoint or output.with_suffix(".checkpoint.nc"))
     if not args.resume:
         _refuse_overwrite(checkpoint, args.overwrite)
-    client = connect(args.scheduler, args.workers, backend=args.backend)
+    backend = chosen_backend(args)  # this process's; a scheduler's workers resolve theirs
+    initial = _initial_medium(measurements, args.init, args.medium, args.optics, backend)
+    client = connect(args.scheduler, args.workers, backend=backend)
     if client is not None:
         print(f"tracing on {client}")
     try:
-        where = {"backend": args.backend, "client": client}
+        where = {"backend": args.backend if args.scheduler else backend, "client": client}
         if args.resume:
             asked = {field: settings[field] for field in origins}
             try:
@@ -232,7 +245,9 @@ def _cli_report(args: argparse.Namespace) -> int:
                       args.result)
     truth = load_medium(args.truth) if args.truth else None
     measurements = load_measurements(args.measurements) if args.measurements else None
-    summary = write_report(result, args.output, truth=truth, measurements=measurements)
+    backend = "cpu" if measurements is None else chosen_backend(args)  # the re-render's
+    summary = write_report(result, args.output, truth=truth, measurements=measurements,
+                           backend=backend)
     print(f"wrote {summary}")
     return 0
 
@@ -247,6 +262,7 @@ def _cli_demo(args: argparse.Namespace) -> int:
     out = Path(args.output)
     _refuse_overwrite(out / "result.nc", args.overwrite)
     out.mkdir(parents=True, exist_ok=True)
+    backend = chosen_backend(args)
     start = time.perf_counter()
     truth = to_optical(demo.medium(), optics=args.optics or DEFAULT_OPTICS)
     lo, hi = (np.array([e[i] for e in cell_edges(truth)]) for i in (0, -1))
@@ -256,18 +272,22 @@ def _cli_demo(args: argparse.Namespace) -> int:
           f"{scene.boundary} boundaries")
     print(f"1/4 synthesising measurements ({args.measurement_photons} photons) ...")
     measurements = synthesize_measurements(truth, scene, photons=args.measurement_photons,
-                                           seed=1)
+                                           seed=1, backend=backend)
     save_measurements(measurements, out / "measurements.nc", overwrite=True)
     save_medium(truth, out / "truth.nc", overwrite=True)
     print("2/4 space carving ...")
-    initial = initial_medium(carve(measurements, truth), truth)
+    initial = initial_medium(carve(measurements, truth, backend=backend), truth)
     save_medium(initial, out / "init.nc", overwrite=True)
-    print(f"3/4 retrieving ({config.iterations} iterations, {config.photons} photons each) ...")
-    run = Retrieval(measurements, initial, config, truth=truth)
+    each = (f"photons fitted to {target_seconds(config.iteration_seconds, backend):g} s "
+            "per iteration"
+            if config.photons == AUTO else f"{config.photons} photons each")
+    print(f"3/4 retrieving ({config.iterations} iterations, {each}) ...")
+    run = Retrieval(measurements, initial, config, truth=truth, backend=backend)
     result = run.run(checkpoint=out / "checkpoint.nc", progress=None)
     result.to_netcdf(out / "result.nc")
     print("4/4 report ...")
-    summary = write_report(result, out / "report", truth=truth, measurements=measurements)
+    summary = write_report(result, out / "report", truth=truth, measurements=measurements,
+                           backend=backend)
     eps = float(result["log_epsilon"].values[-1])
     delta = float(result["log_delta"].values[-1])
     print(f"done in {time.perf_counter() - start:.0f} s: epsilon {eps:.1%}, delta {delta:+.1%}; "
@@ -275,8 +295,13 @@ def _cli_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def photon_count(text: str) -> int | str:
+    """``--photons``: a count, or ``auto``."""
+    return AUTO if text == AUTO else int(text)
+
+
 def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
-                    photons: int | None = None) -> None:
+                    photons: int | str | None = None) -> None:
     """The options of a retrieval run (iterations, photons, optimiser, step, coarse-to-fine
     stages, recycling) with these defaults for ``--iterations`` and ``--photons`` (None:
     :class:`RetrievalConfig`'s, or the command's configuration file's); the others default
@@ -287,9 +312,14 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
                                                    ("photons", photons)) if v is not None})
     p.add_argument("--iterations", type=int,
                    help=f"iterations in all (default {iterations or 'the configuration file'})")
-    p.add_argument("--photons", type=int,
-                   help="gradient photons per iteration (the images': x --image-photons; "
-                        f"default {photons or 'the configuration file'})")
+    p.add_argument("--photons", type=photon_count,
+                   help="gradient photons per iteration (the images': x --image-photons), or "
+                        "auto: as many as fill --iteration-seconds on the device (default "
+                        f"{photons or 'the configuration file'})")
+    p.add_argument("--iteration-seconds", type=float,
+                   help="--photons auto: the wall time an iteration aims at (default "
+                        f"{TARGET_SECONDS['cpu']:g} on a CPU, {TARGET_SECONDS['cuda']:g} on a "
+                        "GPU)")
     p.add_argument("--optimizer", choices=OPTIMIZERS,
                    help=f"adam, sgd, or lbfgsb (L-BFGS-B windows on recycled paths; default "
                         f"{c.optimizer})")
@@ -301,7 +331,7 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
     p.add_argument("--sparsity", type=float,
                    help="weight of an L1 prior on the cloud extinction [1/km^2]: the loss "
                         "gains this x the loss of a dark medium x the cloud's extinction "
-                        f"cross-section [km^2] (default {c.sparsity}: none)")
+                        f"cross-section [km^2] (default {SPARSITY}, 0 with lbfgsb; 0: none)")
     p.add_argument("--time-limit", type=float, help="stop after S seconds")
     p.add_argument("--recycling", choices=RECYCLING,
                    help=f"path recycling policy (seed paper Alg. 2; default {c.recycling})")
@@ -359,11 +389,36 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
                         " differentiated by the score function, without recycling) "
                         f"(default {c.transmittance})")
     p.add_argument("--saturation-window", type=int,
-                   help="iterations over which the loss must keep falling to stay in a stage "
+                   help="iterations of the loss a plateau is judged on "
                         f"(default {c.saturation_window})")
     p.add_argument("--step-decay", type=float,
-                   help="last stage: multiply the step by this when the loss saturates "
+                   help="last stage: multiply the step by this at a plateau of the loss "
                         f"(default {c.step_decay})")
+    p.add_argument("--schedule", choices=SCHEDULES,
+                   help="how a plateau of the loss is found: noise (its decrease within its "
+                        "Monte Carlo noise), threshold (less than 2 %% per window) or fixed "
+                        f"(none: the step decays at fixed fractions of the run) (default "
+                        f"{c.schedule})")
+    p.add_argument("--significance", type=float,
+                   help=f"--schedule noise: the test's false-alarm rate (default "
+                        f"{c.significance})")
+    p.add_argument("--plateau", choices=PLATEAU_ANSWERS,
+                   help="the last stage's answer to a plateau: photons (x --photon-growth up "
+                        "to --photon-cap, then the step) or step (default "
+                        f"{c.plateau})")
+    p.add_argument("--photon-growth", type=float,
+                   help=f"--plateau photons: growth per plateau (default {c.photon_growth})")
+    p.add_argument("--photon-cap", type=float,
+                   help="--plateau photons: at most this x the count the run settled at "
+                        f"(default {c.photon_cap})")
+    p.add_argument("--step-floor", type=float,
+                   help=f"the step never below this x its start (default {c.step_floor})")
+    p.add_argument("--max-change", type=float,
+                   help="per voxel and iteration, |change| <= this x (extinction + step) "
+                        "(default: unbounded)")
+    p.add_argument("--sparsity-schedule", choices=SPARSITY_SCHEDULES,
+                   help="the L1 prior's weight: fixed, or noise: x the gradient's noise "
+                        f"over the stage's first iteration's (default {c.sparsity_schedule})")
 
 
 def add_config_options(p: argparse.ArgumentParser) -> None:
@@ -400,7 +455,7 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument("--seed", type=int, help=f"default {RetrievalConfig.seed}")
     r.add_argument("--overwrite", action="store_true")
     add_config_options(r)
-    add_run_options(r, iterations=300, photons=100_000)
+    add_run_options(r)
     add_optics_option(r, "With --init carve, the cloud optics of the template (default: the "
                       "measurements' recorded optics, else 'hg')")
     add_distributed_options(r)
@@ -411,6 +466,7 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--truth", help="true medium netCDF")
     p.add_argument("--measurements", help="measurement netCDF (re-rendered images)")
     p.add_argument("-o", "--output", default="report")
+    add_backend_option(p)
     p.set_defaults(func=_cli_report)
 
     d = subparsers.add_parser(
@@ -419,16 +475,16 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
         "zenith, the nine cameras of the scene's preset of cloudct scene, open boundaries), "
         "carve, retrieve and report. --scene single-cloud (the default) is the seed paper's "
         "single cloud, rico32x37x26; its run's settings are the bundled "
-        "cloudct/data/demo.toml: cloudct retrieve's defaults, those of the best measured "
-        "single-cloud retrieval (one stage at 2x2 pixel blocks, gradient smoothed over 1 "
-        "voxel, 4x photons for the residual's images, step 1 /km halved when the loss "
-        "saturates, the gradient by sample matching from residual-drawn pixels), with the L1 "
-        "prior sparsity = 0.01 and 60 iterations of 50,000 gradient paths. --scene "
+        "cloudct/data/demo.toml: cloudct retrieve's defaults (one stage at 2x2 pixel "
+        "blocks, gradient smoothed over 1 voxel, 2x photons for the residual's images, step "
+        "0.5 /km, the L1 prior 0.01 falling with the gradient's noise, the gradient by sample "
+        "matching from residual-drawn pixels, more photons and then a smaller step when the "
+        "loss's decrease is within its noise, the iterates' moving average) for 60 "
+        "iterations of about 5 s. --scene "
         "cloud-field is the seed paper's cloud field, the 79 x 84 x 27 window of the LES "
         "field rico122x106x39 holding the most cloudy cells, seen by nine 86 x 86 cameras; "
-        "its settings are cloudct/data/demo_cloud_field.toml (60 iterations of 300,000 "
-        "paths, step 0.5 /km, the L1 prior, the iterates' moving average: 13 minutes on 2 "
-        "CPU cores, epsilon 0.81 to 0.73). cloudct demo --scene S "
+        "its settings are cloudct/data/demo_cloud_field.toml (the same defaults, 60 "
+        "iterations of about 20 s on a CPU). cloudct demo --scene S "
         "--write-config prints a scene's settings.",
     )
     d.add_argument("-o", "--output", default="cloudct_demo", help="output directory")
@@ -439,6 +495,7 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     d.add_argument("--measurement-photons", type=int, default=10_000_000,
                    help="photons of the synthetic measurements (default %(default)s)")
     add_optics_option(d, "Default: 'hg'")
+    add_backend_option(d)
     add_config_options(d)
     add_run_options(d)
     d.set_defaults(func=_cli_demo)

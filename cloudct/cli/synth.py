@@ -5,7 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from cloudct.cli.options import add_optics_option, medium_from_options
+from cloudct.cli.options import (
+    add_backend_option,
+    add_optics_option,
+    chosen_backend,
+    medium_from_options,
+)
 from cloudct.mc.scene import load_scene
 from cloudct.measurements import (
     DEFAULT_PHOTONS,
@@ -31,6 +36,7 @@ def _cli_synth(args: argparse.Namespace) -> int:
     ds = synthesize_measurements(
         medium, scene, photons=args.photons, seed=args.seed, noise=noise,
         wavelength=args.wavelength, optics=args.optics, progress=None,
+        backend=chosen_backend(args),
     )
     save_measurements(ds, output, overwrite=args.overwrite)
     noise_text = "no camera noise" if noise is None else (
@@ -38,7 +44,7 @@ def _cli_synth(args: argparse.Namespace) -> int:
     )
     print(
         f"wrote {output}: {ds.sizes['view']} views of {ds.sizes['row']}x{ds.sizes['col']}, "
-        f"{ds.attrs['photons']} photons, {noise_text}"
+        f"{ds.attrs['photons']} photons on the {ds.attrs['backend']} back end, {noise_text}"
     )
     return 0
 
@@ -67,5 +73,6 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--wavelength", type=float, default=DEFAULT_WAVELENGTH,
                    help="wavelength [micron] (default %(default)s)")
     add_optics_option(p)
+    add_backend_option(p)
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cli_synth)

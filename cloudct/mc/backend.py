@@ -57,6 +57,19 @@ def resolve_backend(backend: str) -> str:
     return "cpu"
 
 
+def device_description(backend: str) -> str:
+    """The device a resolved back end runs on, in words: ``"the GPU NVIDIA H100 80GB HBM3"``
+    or ``"the CPU (16 threads)"``."""
+    if backend == "cuda":
+        from numba import cuda
+
+        name = cuda.get_current_device().name
+        return f"the GPU {name.decode() if isinstance(name, bytes) else name}"
+    from numba import config
+
+    return f"the CPU ({config.NUMBA_NUM_THREADS} threads)"
+
+
 def sort_by_path_length(lengths: np.ndarray) -> np.ndarray:
     """Indices that order paths by length (vertex or record count), stable: paths of equal
     length keep their order. Re-tracing (or replaying) paths in this order gives the threads

@@ -31,6 +31,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import config, cuda, njit
 
+from cloudct.jit_cache import install_cuda_locator
 from cloudct.mc.accumulate import add_to, register_cuda_implementation
 from cloudct.mc.backend import sort_by_path_length
 from cloudct.mc.backward import trace_pixel_sample
@@ -38,6 +39,8 @@ from cloudct.mc.camera_gradient import drawn_pixel, gradient_sample
 from cloudct.mc.forward import GRADIENT, RENDER, RESIDUAL, trace_photon
 
 register_cuda_implementation()
+# kernels compiled once per machine, not per process (cloudct.jit_cache: where, and when stale)
+install_cuda_locator()
 
 SIMULATOR = bool(config.ENABLE_CUDASIM)
 
@@ -66,7 +69,7 @@ class DeviceScene(NamedTuple):
 # --------------------------------------------------------------------------------------
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def forward_render_kernel(
     scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, out
 ):
@@ -85,7 +88,7 @@ def forward_render_kernel(
     cuda.atomic.add(events, b, vertices)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def forward_residual_kernel(
     scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, nbatch, out
 ):
@@ -107,7 +110,7 @@ def forward_residual_kernel(
     cuda.atomic.add(events, b, n)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def forward_gradient_kernel(
     scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, out
 ):
@@ -145,7 +148,7 @@ def pixel_sample_of_thread(t, nbatch, nview, nrows, ncols, per_batch, first):
     return b, view, row, col, (pixel * nbatch + b) * per_batch + k
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def backward_kernel(
     scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, out
 ):
@@ -167,7 +170,7 @@ def backward_kernel(
     cuda.atomic.add(events, b, vertices)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def camera_gradient_kernel(
     scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, estimator,
     probes, quadratic, mis, out,

@@ -1,11 +1,11 @@
 """Forward (sun -> medium) path tracing with local estimation to every camera.
 
-Seed paper Sec. 3.4: a photon enters on a sunlit face (:mod:`cloudct.mc.sun`) with the
-weight that makes the estimate absolute, flies a distance sampled by exact inversion of the
-optical depth (Eq. 32), scatters with the mixture phase function (Eq. 33 and
-:mod:`cloudct.mc.events`), a share of its directions aimed at the cameras
-(:mod:`cloudct.mc.detector_sampling`), and carries the effective albedo as a weight. At
-every scattering event, and at every reflection by the Lambertian ground, it sends a local
+Seed paper Sec. 3.4: a photon enters on a sunlit face (:mod:`cloudct.mc.sun`: uniformly, or
+preferably where the clouds are) with the weight that makes the estimate absolute, flies a
+distance sampled by exact inversion of the optical depth (Eq. 32), scatters with the mixture
+phase function (Eq. 33 and :mod:`cloudct.mc.events`), a share of its directions aimed at the
+cameras (:mod:`cloudct.mc.detector_sampling`), and carries the effective albedo as a weight.
+At every scattering event, and at every reflection by the Lambertian ground, it sends a local
 estimate to every camera (Eqs. 36-39):
 
     weight * albedo * f_p(x, cos theta_{b,d}) * T(x, x_d) / (r^2 Omega_pixel)
@@ -240,10 +240,9 @@ def trace_photon(
     u_face, state = uniform(state)
     u1, state = uniform(state)
     u2, state = uniform(state)
-    px, py, pz = sample_entry_point(grid, sun, u_face, u1, u2)
+    px, py, pz, weight = sample_entry_point(grid, sun, u_face, u1, u2)
     ux, uy, uz = sun.direction[0], sun.direction[1], sun.direction[2]
     ix, iy, iz = locate_point(grid, px, py, pz, ux, uy, uz)
-    weight = sun.power
     depth = 0
     total = 0.0
     remaining = path_sum  # W_k: the residual-weighted estimates of events not yet passed

@@ -34,6 +34,7 @@ from cloudct.mc.pixel_sampling import pixel_table
 from cloudct.mc.render import check_residual, check_sampling, kernel_inputs, run_in_rounds
 from cloudct.mc.runners import camera_gradient_runner, forward_runner
 from cloudct.mc.scene import Scene
+from cloudct.mc.sun import check_cloud_share
 from cloudct.mc.traversal import require_exponential, require_smooth_flight_density
 
 #: Gradient estimators by name: path score function (forward), differential ratio tracking
@@ -57,12 +58,18 @@ def score_function_gradient(
     progress: bool | None = None,
     backend: str = "cpu",
     executor: BatchExecutor | None = None,
+    entry_cloud_share: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """sum_d residual_d dI_d / d beta_cloud per voxel by the path score function.
 
     ``aim_fraction``: the forward paths' detector directional importance sampling, as for
     :func:`cloudct.mc.render.render` (0: off); the score terms are the same, the weights
     f / q make the estimate unbiased (:mod:`cloudct.mc.detector_sampling`).
+
+    ``entry_cloud_share``: the share m in [0, 1) of photons entering where the clouds are,
+    as for :func:`cloudct.mc.render.render` (0: uniform entry). The entry density is fixed
+    for the whole estimate (it is built from the medium before any path is traced), so
+    the score terms are the same and only each path's weight changes.
 
     ``backend``: ``"cpu"``, ``"cuda"`` or ``"auto"`` (:mod:`cloudct.mc.backend`).
     ``executor``: traces the batches elsewhere, e.g. a
@@ -74,7 +81,7 @@ def score_function_gradient(
     """
     check_sampling(photons, batches, rr_depth, rr_survival)
     residual = check_residual(residual, scene)
-    k = kernel_inputs(medium, scene, aim_fraction)
+    k = kernel_inputs(medium, scene, aim_fraction, entry_cloud_share=entry_cloud_share)
     require_smooth_flight_density(k.grid, "score-function gradients")
     per_batch = math.ceil(int(photons) / batches)
     if executor is not None:
@@ -82,7 +89,8 @@ def score_function_gradient(
             k, residual, seed=seed, per_batch=per_batch, batches=batches,
             rr_depth=rr_depth, rr_survival=rr_survival, backend=backend, progress=progress,
         )
-        return (*mean_and_std_error(batch_means), info)
+        return (*mean_and_std_error(batch_means),
+                {**info, "entry_cloud_share": k.sun.cloud_share})
     gradients = np.zeros((batches, *k.grid.extinction.shape[1:]))
     no_images = np.zeros((batches, 1, 1, 1))
     events = np.zeros(batches, dtype=np.int64)
@@ -97,7 +105,8 @@ def score_function_gradient(
         max_rounds=run.max_rounds,
     )
     info = {"photons": per_batch * batches, "events": int(events.sum()), "wall_time": wall,
-            "backend": backend, "aim_fraction": k.cams.aim_fraction}
+            "backend": backend, "aim_fraction": k.cams.aim_fraction,
+            "entry_cloud_share": k.sun.cloud_share}
     return (*mean_and_std_error(gradients / per_batch), info)
 
 
@@ -121,10 +130,13 @@ def _camera_gradient(
     require_exponential(k.grid, "DRT and sample-matching gradients")
     pixels = int(np.count_nonzero(residual))
     table = pixel_table(residual, pixel_sampling)
-    # per batch: samples of each pixel (uniform), or as many samples in all (table)
-    per_batch = math.ceil(int(samples_per_pixel) / batches)
+    # per batch: samples of each pixel (uniform), or as many samples in all as
+    # samples_per_pixel x pixels (table), not rounded up to whole samples of each pixel in
+    # each batch (that rounding would trace pixels x batches samples at the least)
     if table.pixel.size:
-        per_batch *= pixels
+        per_batch = math.ceil(int(samples_per_pixel) * pixels / batches)
+    else:
+        per_batch = math.ceil(int(samples_per_pixel) / batches)
     estimator_args = (estimator, int(probes), bool(quadratic), bool(mis))
     if executor is not None:
         batch_means, info = check_executor(executor).camera_gradient_batch_means(
@@ -145,8 +157,8 @@ def _camera_gradient(
                              max_rounds=run.max_rounds)
         batch_means = gradients / per_batch
         info = {"events": int(events.sum()), "wall_time": wall, "backend": backend}
-    info = {"photons": math.ceil(int(samples_per_pixel) / batches) * batches * pixels,
-            **info, "pixel_sampling": pixel_sampling}
+    samples = per_batch * batches * (1 if table.pixel.size else pixels)
+    info = {"photons": samples, **info, "pixel_sampling": pixel_sampling}
     return (*mean_and_std_error(batch_means), info)
 
 
@@ -253,11 +265,14 @@ def gradient_estimate(
     progress: bool | None = False,
     backend: str = "cpu",
     executor: BatchExecutor | None = None,
+    entry_cloud_share: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """sum_d residual_d dI_d / d beta_cloud per voxel by the estimator named ``estimator``
     (one of :data:`ESTIMATORS`), with ``paths`` paths in all.
 
-    ``"score"`` traces ``paths`` forward photons (each serves every pixel). ``"drt"`` and
+    ``"score"`` traces ``paths`` forward photons (each serves every pixel), a share
+    ``entry_cloud_share`` of them entering where the clouds are
+    (:func:`score_function_gradient`; the camera-side estimators ignore it). ``"drt"`` and
     ``"sm"`` trace camera paths: ``ceil(paths / n)`` samples per pixel for the n pixels
     whose residual is not zero, drawn per pixel (``pixel_sampling="uniform"``) or, as many
     in all, in proportion to |residual| (``"residual"``; :mod:`cloudct.mc.pixel_sampling`).
@@ -268,6 +283,7 @@ def gradient_estimate(
     """
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
+    check_cloud_share(entry_cloud_share)
     if estimator == "score":
         if pixel_sampling != "uniform":
             raise ValueError("pixel_sampling applies to the camera-side estimators (drt, sm): "
@@ -275,6 +291,7 @@ def gradient_estimate(
         mean, std_error, info = score_function_gradient(
             medium, scene, residual, photons=paths, seed=seed, batches=batches,
             progress=progress, backend=backend, executor=executor,
+            entry_cloud_share=entry_cloud_share,
         )
         info["estimator"] = estimator
         return mean, std_error, info

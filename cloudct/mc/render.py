@@ -34,7 +34,7 @@ from cloudct.mc.scene import (
     check_scene,
     periodic_copy_ranges,
 )
-from cloudct.mc.sun import SunArrays, sun_arrays
+from cloudct.mc.sun import SunArrays, check_cloud_share, sun_arrays
 from cloudct.medium import cell_edges, is_optical, validate_medium
 from cloudct.netcdf import save_netcdf
 from cloudct.optics import DEFAULT_OPTICS, kernel_arrays, optics_name, to_optical
@@ -59,6 +59,7 @@ def render(
     progress: bool | None = None,
     backend: str = "cpu",
     executor: BatchExecutor | None = None,
+    entry_cloud_share: float = 0.0,
 ) -> xr.Dataset:
     """Images of ``medium`` seen by the cameras of ``scene``.
 
@@ -97,11 +98,20 @@ def render(
         Traces the batches elsewhere (:class:`~cloudct.mc.executor.BatchExecutor`), e.g.
         a :class:`cloudct.distributed.DaskExecutor` on Dask workers (``backend`` resolved
         there), with bitwise the same result. None: this process.
+    entry_cloud_share
+        Forward: the share m in [0, 1) of photons that enter the box where the sun's rays
+        meet clouds (in proportion to 1 - exp(-tau) of the entry cell's ray), the rest
+        uniformly, each photon weighted so that the images stay unbiased
+        (:mod:`cloudct.mc.sun`). 0 (default): uniform entry, bitwise the images of
+        earlier versions. The backward estimator ignores it. The share applied is the
+        images' attribute ``entry_cloud_share`` (0 where no ray of the sun meets
+        extinction: uniform entry).
     """
     batch_means, info = render_batches(
         medium, scene, photons=photons, method=method, seed=seed, batches=batches,
         rr_depth=rr_depth, rr_survival=rr_survival, aim_fraction=aim_fraction,
         progress=progress, backend=backend, executor=executor,
+        entry_cloud_share=entry_cloud_share,
     )
     radiance = batch_means.mean(axis=0)
     std_error = batch_means.std(axis=0, ddof=1) / math.sqrt(batches)
@@ -122,26 +132,31 @@ def render_batches(
     progress: bool | None = None,
     backend: str = "cpu",
     executor: BatchExecutor | None = None,
+    entry_cloud_share: float = 0.0,
 ) -> tuple[np.ndarray, dict]:
     """The images of each independent batch, float64[batches, view, row, col], and the run's
     attributes; :func:`render` averages them. Arguments as for :func:`render`."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     check_sampling(photons, batches, rr_depth, rr_survival)
+    check_cloud_share(entry_cloud_share)
     orthographic = any(c.projection == "orthographic" for c in scene.cameras)
     if orthographic and backend != "cpu":
         raise ValueError(
             f"orthographic cameras render on the CPU only (yet): use backend='cpu', not "
             f"{backend!r}"
         )
-    k = kernel_inputs(medium, scene, aim_fraction if method == "forward" else 0.0,
-                      orthographic=orthographic)
+    forward = method == "forward"
+    k = kernel_inputs(medium, scene, aim_fraction if forward else 0.0,
+                      orthographic=orthographic,
+                      entry_cloud_share=entry_cloud_share if forward else 0.0)
     per_batch = math.ceil(int(photons) / batches)
     if executor is not None:
-        return check_executor(executor).render_batch_means(
+        batch_means, info = check_executor(executor).render_batch_means(
             k, method=method, seed=seed, per_batch=per_batch, batches=batches,
             rr_depth=rr_depth, rr_survival=rr_survival, backend=backend, progress=progress,
         )
+        return batch_means, {**info, "entry_cloud_share": k.sun.cloud_share}
     images = np.zeros((batches, len(scene.cameras), k.cams.nrows, k.cams.ncols))
     events = np.zeros(batches, dtype=np.int64)
     no_residual = np.zeros((1, 1, 1))
@@ -164,7 +179,8 @@ def render_batches(
     info = dict(
         method=method, photons=per_batch * batches, seed=seed, batches=batches,
         events=int(events.sum()), wall_time=wall, rr_depth=rr_depth, rr_survival=rr_survival,
-        aim_fraction=k.cams.aim_fraction, backend=backend,
+        aim_fraction=k.cams.aim_fraction, entry_cloud_share=k.sun.cloud_share,
+        backend=backend,
     )
     return images / per_batch, info
 
@@ -206,13 +222,15 @@ class KernelInputs(NamedTuple):
 
 def kernel_inputs(
     medium: xr.Dataset, scene: Scene, aim_fraction: float | None = None,
-    orthographic: bool = False,
+    orthographic: bool = False, entry_cloud_share: float = 0.0,
 ) -> KernelInputs:
     """Validate a medium and a scene and gather them into kernel arrays (``aim_fraction``:
     the forward estimator's detector directional importance sampling, see
     :mod:`cloudct.mc.detector_sampling`; 0 switches it off, None chooses it by the optics:
     :func:`default_aim_fraction`). ``orthographic``: whether the caller supports
-    orthographic cameras (:func:`cloudct.mc.cameras.camera_arrays`)."""
+    orthographic cameras (:func:`cloudct.mc.cameras.camera_arrays`).
+    ``entry_cloud_share``: the forward photons' share m in [0, 1) entering where the clouds
+    are (:func:`cloudct.mc.sun.sun_arrays`; 0: uniform entry)."""
     grid, bank, edges = medium_arrays(medium)
     check_scene(scene, edges)
     if aim_fraction is None:
@@ -222,7 +240,7 @@ def kernel_inputs(
         bank=bank,
         cams=camera_arrays(scene.cameras, aim_fraction, orthographic),
         copies=periodic_copy_ranges(scene, edges),
-        sun=sun_arrays(scene.sun, edges, scene.periodic),
+        sun=sun_arrays(scene.sun, edges, scene.periodic, grid, entry_cloud_share),
         periodic=scene.periodic,
         ground=-1.0 if scene.ground_albedo is None else float(scene.ground_albedo),
         edges=edges,

@@ -119,6 +119,7 @@ def domain_means(
     aim_fraction: float | None = None,
     progress: bool | None = None,
     backend: str = "cpu",
+    entry_cloud_share: float = 0.0,
 ) -> xr.Dataset:
     """Domain-mean fluxes and radiance probes of ``medium`` lit by ``sun``.
 
@@ -140,6 +141,10 @@ def domain_means(
         directions at the probe directions.
     backend
         ``"cpu"`` only (yet).
+    entry_cloud_share
+        The share m in [0, 1) of photons entering where the clouds are, as for
+        :func:`cloudct.mc.render.render` (0: uniform entry). The shares stay those of the
+        solar power entering the domain: each photon's weight, not its count, carries it.
 
     Returns
     -------
@@ -172,7 +177,8 @@ def domain_means(
     travel = np.array([travel_direction(z, a) for z, a in angles]).reshape(-1, 3)
     k = KernelInputs(
         grid=grid, bank=bank, cams=probe_arrays(travel, edges, periodic, aim_fraction),
-        copies=np.zeros((len(angles), 4), np.int64), sun=sun_arrays(sun, edges, periodic),
+        copies=np.zeros((len(angles), 4), np.int64),
+        sun=sun_arrays(sun, edges, periodic, grid, entry_cloud_share),
         periodic=periodic, ground=-1.0 if ground_albedo is None else float(ground_albedo),
         edges=edges,
     )
@@ -190,7 +196,8 @@ def domain_means(
     shares = fluxes[:, 0, 0, :] / (per_batch * k.sun.power)
     info = dict(photons=per_batch * batches, seed=seed, batches=batches,
                 events=int(events.sum()), wall_time=wall, rr_depth=rr_depth,
-                rr_survival=rr_survival, aim_fraction=float(aim_fraction), backend=backend,
+                rr_survival=rr_survival, aim_fraction=float(aim_fraction),
+                entry_cloud_share=k.sun.cloud_share, backend=backend,
                 optics=optics_name(medium))
     return _sensors_dataset(images[:, :, 0, 0] / per_batch, shares, angles, k, sun, boundary,
                             ground_albedo, info)

@@ -39,6 +39,8 @@ import numpy as np
 import xarray as xr
 from scipy.stats import gamma as gamma_dist
 
+from cloudct.jit_cache import cache_root
+
 # Water at 0.672 micron, Hale & Querry (1973), "Optical constants of water in the 200-nm to
 # 200-um wavelength region", Appl. Opt. 12, 555-563. Convention m = n + i k, k >= 0 absorbs.
 WATER_INDEX_0672 = complex(1.3312, 1.6e-8)
@@ -240,14 +242,6 @@ def _matches(ds: xr.Dataset, attrs: dict, reff: np.ndarray, angles: np.ndarray) 
     )
 
 
-def _default_cache_dir() -> Path:
-    root = os.environ.get("CLOUDCT_CACHE_DIR")
-    if root:
-        return Path(root)
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg else Path.home() / ".cache") / "cloudct"
-
-
 def mie_table(
     wavelength: float = DEFAULT_WAVELENGTH,
     refractive_index: complex | None = None,
@@ -288,7 +282,7 @@ def mie_table(
 
     key = json.dumps(attrs, sort_keys=True).encode() + reff.tobytes() + angles.tobytes()
     digest = hashlib.sha1(key).hexdigest()[:12]
-    path = Path(cache_dir or _default_cache_dir()) / (
+    path = Path(cache_dir or cache_root()) / (
         f"mie_water_{wavelength:g}um_veff{veff:g}_{digest}.nc"
     )
     if path.exists():

@@ -58,7 +58,7 @@ def replay_thread_path(t, order, S, per_batch, first, count):
     return b, j, S.slot[j]
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def replay_render_kernel(
     scene, periodic, ground, rr_depth, rr_survival, power, per_batch, use_crossings, S, first,
     count, out,
@@ -80,7 +80,7 @@ def replay_render_kernel(
     cuda.atomic.add(events, b, depth)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def replay_gradient_kernel(
     scene, periodic, ground, rr_depth, rr_survival, power, per_batch, use_crossings, S, first,
     count, out,
@@ -101,7 +101,7 @@ def replay_gradient_kernel(
     cuda.atomic.add(events, b, depth)
 
 
-@cuda.jit
+@cuda.jit(cache=True)
 def log_ratio_kernel(scene, periodic, per_batch, use_crossings, S, first, count, out):
     """Whole-path log correction factors of ranks ``first .. first + count - 1`` of every
     batch: out = (beta, order, log_ratio[npaths])."""

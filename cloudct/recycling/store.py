@@ -220,6 +220,10 @@ def record_paths(
     ``aim_fraction``: the paths' detector directional importance sampling, as for
     :func:`cloudct.mc.render.render`; each scattering record keeps its weight f / q under
     the reference (``StoreArrays.aim_weight``).
+
+    The paths always enter uniformly on the sunlit faces (``entry_cloud_share`` 0 of
+    :func:`cloudct.mc.render.render`, :mod:`cloudct.mc.sun`): a replay starts every path
+    with the weight ``k.sun.power``, which entry where the clouds are would not match.
     """
     whole = nbatch is None
     nbatch = int(batches) - int(first_batch) if whole else int(nbatch)

@@ -49,6 +49,7 @@ from typing import NamedTuple
 import numpy as np
 import xarray as xr
 
+from cloudct.mc.backend import resolve_backend
 from cloudct.mc.cameras import CameraArrays, camera_arrays
 from cloudct.mc.render import render
 from cloudct.mc.scene import Scene, check_scene
@@ -95,6 +96,7 @@ def carve(
     subsamples: int = SUBSAMPLES,
     profile: str = "excess",
     fit_photons: int | None = FIT_PHOTONS,
+    backend: str = "cpu",
 ) -> xr.Dataset:
     """The space-carved hull of the cloud on the grid of ``grid_template``, and the shape of
     the initial medium's extinction in it.
@@ -116,6 +118,8 @@ def carve(
         fit_photons: photons per trial render of :func:`fit_extinction`, whose result (the
             hull's mean extinction) is stored as the attribute ``extinction_estimate``
             [km-1]; None skips the fit.
+        backend: where the fit's renders run (``"cpu"``, ``"cuda"`` or ``"auto"``,
+            :mod:`cloudct.mc.backend`); recorded in the attribute ``backend``.
 
     Returns:
         A Dataset on the template's grid with ``hull`` (x, y, z) int8 (1 inside),
@@ -176,8 +180,9 @@ def carve(
         subsamples=int(subsamples), profile=profile,
     )
     if fit_photons and hull.any():
+        ds.attrs["backend"] = resolve_backend(backend)
         ds.attrs["extinction_estimate"] = fit_extinction(
-            measurements, ds, grid_template, photons=fit_photons
+            measurements, ds, grid_template, photons=fit_photons, backend=ds.attrs["backend"]
         )
         ds.attrs["extinction_estimate_units"] = "km-1"
     return ds
@@ -344,10 +349,11 @@ def fit_extinction(
     seed: int = 0,
     rtol: float = 0.01,
     max_iterations: int = 12,
+    backend: str = "cpu",
 ) -> float:
     """The hull's mean cloud extinction [km-1] whose images are as bright as the
     measurements, the hull being filled in the carved ``extinction_profile`` (constant
-    for a bare hull mask).
+    for a bare hull mask); the renders run on ``backend`` (:mod:`cloudct.mc.backend`).
 
     The summed radiance of all measured (non-NaN) pixels, B*, is matched by the summed
     radiance B(beta) of :func:`initial_medium` renders (forward, ``photons`` photons, the
@@ -371,7 +377,8 @@ def fit_extinction(
 
     def log_ratio(log_beta: float) -> float:
         medium = initial_medium(carved, template_medium, math.exp(log_beta))
-        images = render(medium, scene, photons=photons, seed=seed, progress=False)
+        images = render(medium, scene, photons=photons, seed=seed, progress=False,
+                        backend=backend)
         return math.log(float(images["radiance"].values[observed].sum()) / target)
 
     x0, x1 = math.log(5.0), math.log(20.0)
@@ -469,4 +476,7 @@ def initial_medium(
         f"extinction {extinction:.6g} km-1",
         **cloud,
     )
-    return medium.assign_attrs(optics=optics_name(template_medium))
+    medium = medium.assign_attrs(optics=optics_name(template_medium))
+    if isinstance(carved, xr.Dataset) and "backend" in carved.attrs:
+        medium.attrs["carving_backend"] = carved.attrs["backend"]  # where the fit ran
+    return medium

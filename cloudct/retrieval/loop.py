@@ -7,16 +7,18 @@ and takes one projected optimiser step (non-negative extinction, zero outside th
 mask). The coarse-to-fine schedule starts from images averaged over blocks of pixels
 (exactly the box-filtered radiance of a coarser camera) and fewer photons, and moves to the
 next stage when the loss stops decreasing. The run's settings, :class:`RetrievalConfig`, and
-their TOML file are :mod:`cloudct.retrieval.config`'s (imported here too).
+their TOML file are :mod:`cloudct.retrieval.config`'s and
+:mod:`cloudct.retrieval.config_file`'s.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +26,7 @@ import xarray as xr
 from tqdm.auto import tqdm
 
 from cloudct.distributed.executor import executor
+from cloudct.mc.backend import device_description, resolve_backend
 from cloudct.mc.gradient import gradient_estimate
 from cloudct.mc.scene import Scene
 from cloudct.mc.traversal import require_smooth_flight_density
@@ -31,28 +34,28 @@ from cloudct.measurements import assumed_transmittance, measured_transmittance
 from cloudct.medium import cell_edges, transmittance_model, validate_medium
 from cloudct.netcdf import InputFileError, load_netcdf, require_variables, save_netcdf
 from cloudct.optics import kernel_arrays, optics_name
-from cloudct.retrieval.config import (  # noqa: F401 (the settings, imported from here too)
-    AVERAGING,
-    OPTIMIZERS,
-    RECYCLING,
-    RetrievalConfig,
-    check_resume,
-    config_from_json,
-    config_to_toml,
+from cloudct.retrieval.config import AUTO, RetrievalConfig
+from cloudct.retrieval.config_file import check_resume, config_from_json, config_to_toml
+from cloudct.retrieval.loss import (
+    image_loss,
+    loss_and_gradient,
+    loss_std_error,
+    pixel_weights,
 )
-from cloudct.retrieval.loss import image_loss, loss_and_gradient, pixel_weights
 from cloudct.retrieval.metrics import epsilon_delta
 from cloudct.retrieval.optimizers import (
     block_mean,
+    bounded_update,
     make_optimizer,
     project,
     smoothed_gradient,
 )
+from cloudct.retrieval.photon_budget import decision, fit_to_device, start_count, target_seconds
 from cloudct.retrieval.sample_average import lbfgsb_window
+from cloudct.retrieval.schedule import advance, noise_weight
+from cloudct.retrieval.state import LOG_FIELDS, RetrievalState, state_from_file
 
-LOG_FIELDS = ("loss", "epsilon", "delta", "seconds", "photons", "stage", "resampled", "ess",
-              "gradient_seconds", "epsilon_average", "delta_average")
-
+LOGGER = logging.getLogger(__name__)
 
 def coarse_measurements(measurements: xr.Dataset, block: int) -> xr.Dataset:
     """Measurements of cameras with ``block`` x ``block`` times larger pixels: the block
@@ -96,25 +99,21 @@ def run_id(measurements: xr.Dataset, config: RetrievalConfig) -> str:
         ignored.append("pixel_sampling")
     if config.transmittance == "exponential":
         ignored.append("transmittance")
+    if config.photons != AUTO:
+        ignored.append("iteration_seconds")
+    if config.schedule == "threshold":  # the schedule before the noise test
+        ignored.append("schedule")
+    if config.schedule != "noise":
+        ignored.append("significance")
+    if config.plateau == "step":
+        ignored += ["plateau", "photon_growth", "photon_cap"]
+    for name, before in (("step_floor", 0.0), ("max_change", None),
+                         ("sparsity_schedule", "fixed")):
+        if getattr(config, name) == before:
+            ignored.append(name)
     settings = {k: v for k, v in asdict(config).items() if k not in ignored}
     h.update(json.dumps(settings, sort_keys=True).encode())
     return h.hexdigest()[:16]
-
-
-@dataclass
-class RetrievalState:
-    """Everything that changes during a run."""
-
-    iteration: int
-    stage: int
-    extinction: np.ndarray
-    optimizer_state: dict[str, np.ndarray]
-    log: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in LOG_FIELDS})
-    elapsed: float = 0.0
-    step_scale: float = 1.0  # the step is config.step x this (step decay)
-    decayed_at: int = 0  # iteration of the last decay (the saturation window restarts)
-    average_sum: np.ndarray | None = None  # weighted sum of the iterates since the restart
-    average_weight: float = 0.0  # its sum of weights (Retrieval.average)
 
 
 class Retrieval:
@@ -140,7 +139,8 @@ class Retrieval:
         client=None,
     ) -> None:
         validate_medium(initial)
-        self.backend = backend
+        # resolved once, here (on the workers with a client)
+        self.backend = backend if client is not None else resolve_backend(backend)
         self.client = client
         self.config = config or RetrievalConfig()
         self.measurements = measurements
@@ -163,7 +163,8 @@ class Retrieval:
         )
         self.id = run_id(measurements, self.config)
         self._recycler = None
-        self._recycler_stage = -1
+        self._recycler_key = None  # (stage, photons) of the recycler's stores
+        self._timed = False  # whether an iteration of this process has run (compiling)
         self._l1_gradients: dict[int, np.ndarray] = {}
         self._stage_data = [coarse_measurements(measurements, b) for b in self.config.stages]
         self.state = RetrievalState(
@@ -171,6 +172,10 @@ class Retrieval:
             extinction=project(initial["cloud_extinction"].values.astype(float), self.mask),
             optimizer_state={},
         )
+        auto = self.config.photons == AUTO
+        self.state.photons = start_count(self.backend) if auto else self.config.photons
+        self.state.photons_settled = not auto
+        self.state.photons_base = self.state.photons
 
     def medium(self, extinction: np.ndarray | None = None) -> xr.Dataset:
         """The current medium (the initial one with the current cloud extinction)."""
@@ -185,12 +190,12 @@ class Retrieval:
         row."""
         s = self.state
         start = time.perf_counter()
-        photons, gradient_photons = self.config.photons_at(s.stage)
+        photons, gradient_photons = self.config.photons_at(s.stage, s.photons)
         if self.optimizer is None:
             loss, resampled, ess = self._lbfgsb_window(photons, gradient_photons), 1.0, math.nan
-            gradient_seconds = math.nan
+            loss_error = gradient_seconds = math.nan
         else:
-            loss, resampled, ess, gradient_seconds = self._first_order_step(
+            loss, loss_error, resampled, ess, gradient_seconds = self._first_order_step(
                 photons, gradient_photons
             )
         eps, delta = eps_average, delta_average = (math.nan, math.nan)
@@ -202,19 +207,40 @@ class Retrieval:
         seconds = time.perf_counter() - start
         s.elapsed += seconds
         row = {
-            "loss": loss, "epsilon": eps, "delta": delta, "seconds": s.elapsed,
-            "photons": photons + gradient_photons, "stage": s.stage, "resampled": resampled,
-            "ess": ess, "iteration_seconds": seconds, "gradient_seconds": gradient_seconds,
-            "epsilon_average": eps_average, "delta_average": delta_average,
+            "loss": loss, "loss_std_error": loss_error, "epsilon": eps, "delta": delta,
+            "seconds": s.elapsed, "photons": photons + gradient_photons,
+            "step": self.config.step * self._stage_step(), "stage": s.stage,
+            "resampled": resampled, "ess": ess, "iteration_seconds": seconds,
+            "gradient_seconds": gradient_seconds, "epsilon_average": eps_average,
+            "delta_average": delta_average,
         }
         for key in LOG_FIELDS:
             s.log[key].append(float(row[key]))
         s.iteration += 1
+        self._schedule(seconds)
+        return row
+
+    def _schedule(self, seconds: float) -> None:
+        """After an iteration of ``seconds``: fit ``photons = "auto"`` to the device
+        (:mod:`cloudct.retrieval.photon_budget`; not on the first iteration this object
+        traces, which compiles the kernels), then the plateau schedule
+        (:mod:`cloudct.retrieval.schedule`); each change is a decision of the log, and a
+        change of stage or step restarts the iterate average."""
+        s, timed, self._timed = self.state, self._timed, True
+        changes = []
+        if not s.photons_settled and timed:
+            changes += fit_to_device(
+                s, seconds, target_seconds(self.config.iteration_seconds, self.backend))
         stage, step_scale = s.stage, s.step_scale
-        self._advance_stage_if_saturated()
+        changes += advance(self.config, s, seconds)
+        for what, why in changes:
+            row = decision(s.iteration, what, why)
+            s.decisions.append(row)
+            LOGGER.info("after iteration %d: %s (%s)", row["iteration"], what, why)
         if (s.stage, s.step_scale) != (stage, step_scale):  # another optimisation: restart
             s.average_sum, s.average_weight = None, 0.0
-        return row
+        if s.stage != stage:  # other pixels: the prior's noise reference too
+            s.noise_reference = 0.0
 
     def _add_to_average(self) -> np.ndarray | None:
         """Add the current iterate to the iterate average and return the average (None
@@ -285,40 +311,51 @@ class Retrieval:
 
     def _first_order_step(
         self, photons: int, gradient_photons: int
-    ) -> tuple[float, float, float, float]:
-        """Loss and gradient (fresh or recycled), preconditioned, and the optimiser's step;
-        returns (loss, resampled, ESS fraction, the gradient's seconds)."""
-        s = self.state
-        if self.config.recycling == "none":
+    ) -> tuple[float, float, float, float, float]:
+        """Loss and gradient (fresh or recycled), preconditioned, and the optimiser's step,
+        bounded per voxel by ``max_change``; returns (loss, its standard error, resampled,
+        ESS fraction, the gradient's seconds)."""
+        s, cfg = self.state, self.config
+        prior = self.l1_gradient(s.stage)
+        if cfg.recycling == "none":
             result = loss_and_gradient(
                 self.medium(), self._stage_data[s.stage], photons=photons,
                 gradient_photons=gradient_photons, seed=self._seed(s.iteration),
-                estimator=self.config.estimator[s.stage],
-                pixel_sampling=self.config.pixel_sampling, backend=self.backend,
-                client=self.client,
+                estimator=cfg.estimator[s.stage], pixel_sampling=cfg.pixel_sampling,
+                backend=self.backend, client=self.client,
             )
             loss, gradient, resampled, ess = result.loss, result.gradient, 1.0, math.nan
+            loss_error = result.loss_std_error
             gradient_seconds = result.gradient_info["wall_time"]
+            if cfg.sparsity_schedule == "noise" and s.photons_settled:  # x noise / first
+                multiple, rms = noise_weight(result.gradient_std_error, self.mask,
+                                             s.noise_reference)
+                s.noise_reference = s.noise_reference or rms
+                prior = prior * multiple
         else:
-            loss, gradient, resampled, ess, gradient_seconds = (
+            loss, loss_error, gradient, resampled, ess, gradient_seconds = (
                 self._recycled_loss_and_gradient(photons, gradient_photons)
             )
         gradient = smoothed_gradient(
-            block_mean(gradient + self.l1_gradient(s.stage), self.mask,
-                       self.config.voxel_blocks[s.stage]),
-            self.mask, self.config.gradient_smoothing[s.stage],
+            block_mean(gradient + prior, self.mask, cfg.voxel_blocks[s.stage]),
+            self.mask, cfg.gradient_smoothing[s.stage],
         )
         self.optimizer.state = s.optimizer_state
-        self.optimizer.step = self.config.step * self._stage_step()
-        s.extinction = self.optimizer.update(s.extinction, gradient, self.mask)
+        self.optimizer.step = cfg.step * self._stage_step()
+        stepped = self.optimizer.update(s.extinction, gradient, self.mask)
+        if cfg.max_change is not None:
+            stepped = bounded_update(s.extinction, stepped, cfg.max_change,
+                                     self.optimizer.step)
+        s.extinction = stepped
         s.optimizer_state = self.optimizer.state
-        return loss, resampled, ess, gradient_seconds
+        return loss, loss_error, resampled, ess, gradient_seconds
 
     def _recycled_loss_and_gradient(
         self, photons: int, gradient_photons: int
-    ) -> tuple[float, np.ndarray, float, float, float]:
-        """Loss and gradient from the stage's recycler (seed paper Alg. 2): stored paths
-        re-evaluated under the current medium, resampled when the policy says so.
+    ) -> tuple[float, float, np.ndarray, float, float, float]:
+        """Loss, its standard error and gradient from the stage's recycler (seed paper
+        Alg. 2): stored paths re-evaluated under the current medium, resampled when the
+        policy says so.
 
         With ``recycle_gradient`` False only the residual's images are recycled, and the
         gradient's paths are traced fresh (with the seed of a fresh iteration's): the
@@ -329,7 +366,7 @@ class Retrieval:
         s = self.state
         config = self.config
         data = self._stage_data[s.stage]
-        if self._recycler is None or self._recycler_stage != s.stage:
+        if self._recycler is None or self._recycler_key != (s.stage, s.photons):
             budget = config.recycling_bytes()
             if budget is not None and not config.recycle_gradient:  # the images' share: all
                 budget *= (photons + gradient_photons) / photons
@@ -350,7 +387,7 @@ class Retrieval:
                 self._recycler = DistributedRecycler(
                     Scene.from_dataset(data), client=self.client, **settings
                 )
-            self._recycler_stage = s.stage
+            self._recycler_key = (s.stage, s.photons)
         w = pixel_weights(data)
         measured = data["radiance"].values
 
@@ -361,7 +398,8 @@ class Retrieval:
         ev = self._recycler.evaluate(
             medium, residual=residual if config.recycle_gradient else None
         )
-        loss = image_loss(ev.images["radiance"].values, measured, w)[0]
+        loss, recycled_residual = image_loss(ev.images["radiance"].values, measured, w)
+        loss_error = loss_std_error(recycled_residual, ev.images["radiance_std_error"].values)
         gradient, gradient_seconds = ev.gradient, math.nan  # replayed with the images
         if not config.recycle_gradient:
             gradient, _, info = gradient_estimate(
@@ -372,30 +410,8 @@ class Retrieval:
                 executor=None if self.client is None else executor(self.client),
             )
             gradient_seconds = info["wall_time"]
-        return (loss, gradient, float(ev.info["resampled"]), float(ev.info["ess_fraction"]),
-                gradient_seconds)
-
-    def _advance_stage_if_saturated(self) -> None:
-        """Next stage when the loss saturates; at the last stage, a step decay instead."""
-        s = self.state
-        w = self.config.saturation_window
-        last = s.stage + 1 >= len(self.config.stages)
-        if last and self.config.step_decay == 1.0:
-            return
-        stage_losses = [
-            loss for i, (loss, st) in enumerate(zip(s.log["loss"], s.log["stage"], strict=True))
-            if st == s.stage and i >= s.decayed_at
-        ]
-        if len(stage_losses) < 2 * w:
-            return
-        before = np.mean(stage_losses[-2 * w : -w])
-        recent = np.mean(stage_losses[-w:])
-        if before - recent < self.config.saturation_tolerance * before:
-            if last:
-                s.step_scale *= self.config.step_decay
-                s.decayed_at = len(s.log["loss"])
-            else:
-                s.stage += 1
+        return (loss, loss_error, gradient, float(ev.info["resampled"]),
+                float(ev.info["ess_fraction"]), gradient_seconds)
 
     def run(
         self, *, checkpoint: str | Path | None = None, progress: bool | None = None
@@ -431,22 +447,8 @@ class Retrieval:
 
     def result(self) -> xr.Dataset:
         """The retrieved medium with the run's log over ``iteration`` and its settings."""
-        ds = self.medium()
         s = self.state
-        ds = ds.assign_coords(iteration=np.arange(1, len(s.log["loss"]) + 1))
-        for key in LOG_FIELDS:
-            ds[f"log_{key}"] = ("iteration", np.array(s.log[key], dtype=float))
-        ds["log_seconds"].attrs.update(units="s", long_name="cumulative wall time")
-        ds["log_loss"].attrs.update(units="1", long_name="loss, seed paper Eq. (41)")
-        ds["log_epsilon"].attrs.update(units="1", long_name="epsilon, seed paper Eq. (54)")
-        ds["log_delta"].attrs.update(units="1", long_name="delta, seed paper Eq. (54)")
-        ds["log_gradient_seconds"].attrs.update(
-            units="s", long_name="wall time of the iteration's fresh gradient (NaN: replayed)"
-        )
-        for key in ("epsilon_average", "delta_average"):
-            ds[f"log_{key}"].attrs.update(
-                units="1", long_name=f"{key.split('_')[0]} of the iterate average"
-            )
+        ds = s.add_log_to(self.medium())
         ds["cloud_mask"] = (("x", "y", "z"), self.mask.astype(np.int8))
         ds["cloud_mask"].attrs.update(units="1", long_name="carved cloud hull (1 = inside)")
         average = self.average()
@@ -460,12 +462,14 @@ class Retrieval:
             title="cloudct retrieval", run_id=self.id, config=json.dumps(asdict(self.config)),
             config_toml=config_to_toml(self.config, header="cloudct retrieve --config FILE "
                                        "re-runs this retrieval (docs/retrieval_config.md)"),
-            iterations_done=s.iteration, stage=s.stage, elapsed_s=s.elapsed,
-            step_scale=s.step_scale, decayed_at=s.decayed_at, average_weight=s.average_weight,
+            **s.attrs(),
             optics=optics_name(self.template),
             measurement_optics=str(self.measurements.attrs.get("optics", "unrecorded")),
             transmittance=transmittance_model(self.template)[0],
             measurement_transmittance=measured_transmittance(self.measurements)[0],
+            backend=self.backend,
+            device=device_description(self.backend) if self.client is None
+            else f"Dask workers ({self.backend} back end)",
         )
         return ds
 
@@ -517,19 +521,5 @@ class Retrieval:
                 f"checkpoint {path} belongs to another run (id {ck.attrs['run_id']}, these "
                 f"measurements and settings give {run.id})"
             )
-        n = ck.sizes["iteration"]  # fields added later are NaN in older checkpoints
-        log = {k: [float(v) for v in (ck[f"log_{k}"].values if f"log_{k}" in ck
-                                      else np.full(n, np.nan))] for k in LOG_FIELDS}
-        optimizer_state = {
-            name.removeprefix("optimizer_"): ck[name].values
-            for name in ck.data_vars if name.startswith("optimizer_")
-        }
-        run.state = RetrievalState(
-            iteration=int(ck.attrs["iterations_done"]), stage=int(ck.attrs["stage"]),
-            extinction=ck["cloud_extinction"].values.astype(float),
-            optimizer_state=optimizer_state, log=log, elapsed=float(ck.attrs["elapsed_s"]),
-            step_scale=float(ck.attrs["step_scale"]), decayed_at=int(ck.attrs["decayed_at"]),
-            average_sum=ck["average_sum"].values if "average_sum" in ck else None,
-            average_weight=float(ck.attrs.get("average_weight", 0.0)),
-        )
+        run.state = state_from_file(ck, run.state)
         return run

@@ -39,6 +39,11 @@ class LossGradient:
     residual: np.ndarray
     gradient_info: dict
 
+    @property
+    def loss_std_error(self) -> float:
+        """The loss's Monte Carlo standard error (:func:`loss_std_error`)."""
+        return loss_std_error(self.residual, self.images["radiance_std_error"].values)
+
 
 def pixel_weights(
     measurements: xr.Dataset, weights: np.ndarray | None = None, mask: np.ndarray | None = None
@@ -75,6 +80,18 @@ def image_loss(
     difference = radiance - np.nan_to_num(measured)
     residual = difference if weights is None else weights * difference
     return 0.5 * float(np.sum(residual * difference)), residual
+
+
+def loss_std_error(residual: np.ndarray, std_error: np.ndarray) -> float:
+    """The Monte Carlo standard error of Eq. (41) computed from images with per-pixel
+    standard errors s_d, to first order (the delta method): dL/dI_d = r_d, the residual,
+    and the pixels' batch means are independent across pixels to that order, so
+
+        sigma_L^2 = sum_d r_d^2 s_d^2.
+
+    (The loss of noisy images is also biased upwards by 1/2 sum_d w_d s_d^2, about the
+    same at every iteration of a run: it shifts the loss, not its slope.)"""
+    return float(np.sqrt(np.sum((residual * std_error) ** 2)))
 
 
 def cross_loss(

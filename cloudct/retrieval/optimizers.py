@@ -107,6 +107,16 @@ class MomentumSGD:
         return project(x - self.step * u, mask)
 
 
+def bounded_update(before: np.ndarray, after: np.ndarray, max_change: float, step: float
+                   ) -> np.ndarray:
+    """``after`` with each voxel's change from ``before`` bounded by ``max_change`` x
+    (beta + ``step``): relative for a cloud voxel, and at least ``max_change`` x the step
+    [1/km] for an empty one, so that one noisy gradient can neither empty nor flood a voxel
+    (``RetrievalConfig.max_change``). The result stays non-negative where ``after`` is."""
+    bound = max_change * (before + step)
+    return np.clip(after, before - bound, before + bound)
+
+
 def make_optimizer(name: str, step: float) -> Adam | MomentumSGD:
     """An optimiser by name ("adam" or "sgd")."""
     if name == "adam":

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from cloudct.retrieval.config import config_from_json, config_to_toml
+from cloudct.retrieval.config_file import config_from_json, config_to_toml
 from cloudct.retrieval.metrics import epsilon_delta, epsilon_split
 
 
@@ -30,8 +30,11 @@ def write_report(
     truth: xr.Dataset | None = None,
     measurements: xr.Dataset | None = None,
     render_photons: int = 1_000_000,
+    backend: str = "cpu",
 ) -> Path:
-    """Write figures and ``summary.md`` for a retrieval result; returns the summary path."""
+    """Write figures and ``summary.md`` for a retrieval result; returns the summary path.
+    With ``measurements``, the result is re-rendered (``render_photons`` photons) on
+    ``backend`` (:mod:`cloudct.mc.backend`) for the images' comparison."""
     plt = _plt()
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
@@ -41,7 +44,8 @@ def write_report(
         f"- run id: `{result.attrs.get('run_id', '?')}`",
         f"- iterations: {result.attrs.get('iterations_done', '?')}, wall time "
         f"{float(result.attrs.get('elapsed_s', np.nan)):.0f} s, final stage "
-        f"{result.attrs.get('stage', '?')}",
+        f"{result.attrs.get('stage', '?')}, on {result.attrs.get('device', 'an unrecorded device')}"
+        f" (back end {result.attrs.get('backend', '?')})",
         "- settings: [the run's configuration](#configuration) below",
         f"- transmittance: retrieved under {result.attrs.get('transmittance', 'exponential')}"
         f", the measurements made under {result.attrs.get('measurement_transmittance', '?')}"
@@ -53,7 +57,8 @@ def write_report(
         for stage in np.unique(stages):
             seconds = result["log_gradient_seconds"].values[stages == stage]
             seconds = seconds[np.isfinite(seconds)]
-            cost = f"{seconds.mean():.2f} s per iteration" if seconds.size else "replayed"
+            cost = (f"the gradient {seconds.mean():.2f} s per iteration" if seconds.size
+                    else "replayed")
             lines.append(f"- stage {stage}: gradient estimator {names[stage]}"
                          f" ({config.get('pixel_sampling', 'uniform')} pixels), {cost}")
     lines.append("")
@@ -118,15 +123,25 @@ def write_report(
         from cloudct.mc.render import render
         from cloudct.mc.scene import Scene
 
-        rendered = render(result, Scene.from_dataset(measurements), photons=render_photons,
-                          progress=False)["radiance"].values
+        images = render(result, Scene.from_dataset(measurements), photons=render_photons,
+                        progress=False, backend=backend)
+        rendered = images["radiance"].values
         measured = measurements["radiance"].values  # NaN pixels (masked) are left out
         _images(plt, measured, rendered, out / "images.png")
         rel = np.nansum(np.abs(rendered - measured)) / np.nansum(np.abs(measured))
         lines += ["## Re-rendered vs measured images", "",
                   f"Relative L1 image difference: {rel:.1%} (re-rendered with {render_photons} "
-                  "photons; their Monte Carlo noise is part of it).", "",
+                  f"photons on the {images.attrs['backend']} back end; their Monte Carlo noise "
+                  "is part of it).", "",
                   "![images](images.png)", ""]
+    decisions = json.loads(result.attrs.get("decisions", "[]"))
+    if decisions:
+        lines += ["## What the run changed on its own", "",
+                  "| after iteration | change | why |", "| --- | --- | --- |",
+                  *(f"| {d['iteration']} | {d['what']} | {d['why']} |" for d in decisions), ""]
+    if "log_step" in result and np.isfinite(result["log_step"].values).any():
+        _schedule_figure(plt, result, decisions, out / "schedule.png")
+        lines += ["![step and photons against time](schedule.png)", ""]
     lines += ["## Configuration", "",
               "The run's settings (`cloudct retrieve --config` of this text, or of the result "
               "file, re-runs it; docs/retrieval_config.md):", "",
@@ -144,6 +159,25 @@ def stored_config(result: xr.Dataset) -> str:
     if "config" in result.attrs:
         return config_to_toml(config_from_json(result.attrs["config"]))
     return "# (the result holds no configuration)\n"
+
+
+def _schedule_figure(plt, result: xr.Dataset, decisions: list[dict], path: Path) -> None:
+    """The step and the photons per iteration against wall time, the run's decisions
+    marked."""
+    seconds = result["log_seconds"].values
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(5, 4.5), sharex=True)
+    top.semilogy(seconds, result["log_step"].values, drawstyle="steps-post")
+    top.set_ylabel("step [1/km]")
+    bottom.semilogy(seconds, result["log_photons"].values, drawstyle="steps-post")
+    bottom.set_ylabel("photons per iteration")
+    bottom.set_xlabel("wall time [s]")
+    for d in decisions:
+        at = seconds[min(int(d["iteration"]), seconds.size) - 1]
+        for ax in (top, bottom):
+            ax.axvline(at, color="0.7", lw=0.6, zorder=0)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def _slices(plt, truth: np.ndarray, beta: np.ndarray, z: np.ndarray, path: Path) -> None:
