@@ -102,7 +102,7 @@ class RetrievalConfig:
     max_change: float | None = None  # per voxel and iteration, |change| <= this x (beta +
     # the step) (Retrieval._first_order_step; None: unbounded)
     sparsity_schedule: str = "noise"  # the L1 weight: "fixed", or "noise": x the gradient's
-    # rms standard error over that of the stage's first iteration
+    # rms standard error over that of the stage's first iteration at settled photons
     checkpoint_every: int = 20
     time_limit: float | None = None  # seconds; stop after this much wall time
     recycling: str = "none"  # "none", "fixed" (every `period` iterations) or "adaptive" (ESS)

@@ -89,8 +89,8 @@ def run_id(measurements: xr.Dataset, config: RetrievalConfig) -> str:
     # settings added later are fingerprinted only where they act (old checkpoints resume)
     if config.optimizer != "lbfgsb":
         ignored.append("trust_region")
-    if config.sparsity == 0.0:
-        ignored.append("sparsity")
+    if config.sparsity == 0.0:  # no prior: its weight's schedule acts on nothing
+        ignored += ["sparsity", "sparsity_schedule"]
     if config.recycle_gradient:
         ignored.append("recycle_gradient")
     if all(name == "score" for name in config.estimator):
