@@ -1,1 +1,1 @@
-"""Readers of LES cloud fields and synthetic data for cloudct."""
+"""Synthetic cloud fields for tests and tutorials (the LES readers are in cloudct.les)."""

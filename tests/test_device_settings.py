@@ -4,6 +4,7 @@ records where it ran, and photons = "auto" fits the photons per iteration to the
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 import xarray as xr
@@ -116,3 +117,20 @@ def test_the_demo_settings_follow_the_device(capsys):
     assert "--photons: invalid photon_count value: 'many'" in capsys.readouterr().err
     with pytest.raises(ValueError, match="photons must be a count >= 1 or 'auto'"):
         RetrievalConfig(photons="fast")
+
+
+def test_info_names_the_versions_the_back_ends_and_the_cache(capsys):
+    import numba
+
+    from cloudct import __version__
+    from cloudct.jit_cache import kernel_cache_dir
+
+    assert main(["info"]) == 0
+    out = dict(re.split(r"\s{2,}", line, maxsplit=1)
+               for line in capsys.readouterr().out.splitlines())
+    assert out["cloudct"] == __version__ and out["numba"] == numba.__version__
+    assert out["cuda back end"].startswith("the GPU" if NO_GPU is None else "unavailable")
+    if NO_GPU is not None:
+        assert NO_GPU in out["cuda back end"]
+    assert out["backend 'auto' runs on"] == ("cuda" if NO_GPU is None else "cpu")
+    assert str(kernel_cache_dir()) in out["kernel cache"]

@@ -20,6 +20,7 @@ COMMAND_MODULES = (
     "cloudct.cli.carve",
     "cloudct.cli.retrieve",
     "cloudct.cli.cache",
+    "cloudct.cli.info",
 )
 
 
