@@ -1,13 +1,16 @@
-"""Pieces the benchmark scripts share: the run header of a result file, Markdown tables,
-the writing of results, and runs of cloudct commands with the error of a retrieval over
-time, as numbers and as a figure."""
+"""Pieces the benchmarks share: where results and work files go, the run header of a
+result file (machine, versions, commit, date, command and settings), Markdown tables, the
+writing of results, and runs of cloudct commands with the error of a retrieval over time,
+as numbers and as a figure."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
 import shlex
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -16,16 +19,67 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
+#: The benchmarks package, its result and work folders, and the repository.
+ROOT = Path(__file__).resolve().parent
+RESULTS = ROOT / "results"
+WORK = ROOT / "work"
+REPO = ROOT.parent
 
-def run_header() -> dict:
-    """Machine, numba threads, load average, date and the exact command of this run."""
-    return {
+#: Distributions whose versions a result records.
+VERSIONED = ("numpy", "numba", "numba-cuda", "scipy", "xarray")
+
+
+def versions() -> dict[str, str]:
+    """The versions of Python, cloudct and :data:`VERSIONED` (None where not installed)."""
+    from importlib import metadata
+
+    from cloudct import __version__
+
+    found = {"python": platform.python_version(), "cloudct": __version__}
+    for name in VERSIONED:
+        try:
+            found[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            found[name] = None
+    return found
+
+
+def commit() -> str | None:
+    """The repository's commit (with ``+changes`` when the work tree differs), or None."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, text=True,
+                              capture_output=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "cloudct"], cwd=REPO,
+                               text=True, capture_output=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("+changes" if dirty else "")
+
+
+def run_header(args: argparse.Namespace | None = None) -> dict:
+    """What a result records of its run: machine, numba threads, load average, versions,
+    commit (``+changes``: cloudct's sources differ from it), date, the exact command and,
+    given the parsed ``args``, every setting it ran with."""
+    header = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
         "numba_threads": int(os.environ.get("NUMBA_NUM_THREADS", os.cpu_count())),
         "load_average_start": os.getloadavg(),
+        "versions": versions(),
+        "commit": commit(),
         "date": time.strftime("%Y-%m-%d %H:%M"),
-        "command": " ".join(sys.argv),
+        "command": shlex.join(["python", "-m", _module_name(), *sys.argv[1:]]),
     }
+    if args is not None:
+        header["settings"] = {k: (str(v) if isinstance(v, Path) else v)
+                              for k, v in vars(args).items()}
+    return header
+
+
+def _module_name() -> str:
+    """The benchmark's module as ``python -m`` names it (its file if it was run as one)."""
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    return spec.name if spec is not None else sys.argv[0]
 
 
 def markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
@@ -37,13 +91,39 @@ def markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
     ]
 
 
-def write_json_and_markdown(result: dict, output: str, markdown: Callable[[dict], str]) -> None:
-    """``output``.json and ``output``.md (the table ``markdown`` makes), also printed."""
+def header_markdown(result: dict) -> list[str]:
+    """The lines of a result's run header (:func:`run_header`) in Markdown."""
+    lines = [f"# {result.get('command', 'a benchmark run')}", ""]
+    for key in ("date", "machine", "numba_threads", "load_average_start", "commit"):
+        if key in result:
+            lines.append(f"- {key.replace('_', ' ')}: {result[key]}")
+    if "versions" in result:
+        lines.append("- versions: " + ", ".join(f"{k} {v}" for k, v in result["versions"].items()))
+    if "settings" in result:
+        lines += ["", *markdown_table(["setting", "value"],
+                                      [[k, f"{v}"] for k, v in result["settings"].items()])]
+    return lines
+
+
+def scalar_markdown(result: dict) -> str:
+    """A result's scalar values as a table (the default Markdown of :func:`write_result`)."""
+    header = {"machine", "numba_threads", "load_average_start", "versions", "commit", "date",
+              "command", "settings"}
+    rows = [[k, f"{v:.6g}" if isinstance(v, float) else f"{v}"] for k, v in result.items()
+            if k not in header and (v is None or isinstance(v, (int, float, str, bool)))]
+    return "\n".join(markdown_table(["quantity", "value"], rows)) + "\n" if rows else ""
+
+
+def write_result(result: dict, output: str | Path,
+                 markdown: Callable[[dict], str] = scalar_markdown) -> None:
+    """``output``.json (the whole result) and ``output``.md (the run header, then the table
+    ``markdown`` makes of the result, also printed)."""
     out = Path(output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(result, indent=2))
-    out.with_suffix(".md").write_text(markdown(result))
-    print(markdown(result))
+    out.with_suffix(".json").write_text(json.dumps(result, indent=1) + "\n")
+    table = markdown(result)
+    out.with_suffix(".md").write_text("\n".join(header_markdown(result)) + "\n\n" + table)
+    print(table)
     print(f"wrote {out.with_suffix('.json')} and {out.with_suffix('.md')}")
 
 
@@ -79,6 +159,15 @@ def error_over_time(result: str | Path, minutes=(5, 15, 30, 60)) -> dict:
             "final": {"epsilon": float(ds["log_epsilon"].values[-1]),
                       "delta": float(ds["log_delta"].values[-1])},
             "over_time": marks}
+
+
+def over_time_markdown(result: dict) -> str:
+    """Epsilon and delta at each mark of :func:`error_over_time`'s result, as a table."""
+    rows = [[mark, str(v["iteration"]), f"{v['epsilon']:.3f}", f"{v['delta']:+.3f}"]
+            for mark, v in result["over_time"].items()]
+    rows.append(["end", str(result["iterations"]), f"{result['final']['epsilon']:.3f}",
+                 f"{result['final']['delta']:+.3f}"])
+    return "\n".join(markdown_table(["time", "iteration", "epsilon", "delta"], rows)) + "\n"
 
 
 def error_figure(runs: dict[str, Path], path: Path, title: str) -> None:

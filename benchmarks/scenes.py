@@ -16,28 +16,25 @@ the file's air):
 
 Usage::
 
-    python benchmarks/scenes.py two_cumuli [--output benchmarks/work/two_cumuli.nc]
-    python benchmarks/scenes.py stratocumulus [--output benchmarks/work/stratocumulus.nc]
+    python -m benchmarks scenes two_cumuli [--output benchmarks/work/two_cumuli.nc]
+    python -m benchmarks scenes stratocumulus [--output benchmarks/work/stratocumulus.nc]
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 import xarray as xr
 from scipy import ndimage
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))
+from benchmarks.common import REPO, WORK
+from cloudct.les import read_les
+from cloudct.medium import save_medium
+from cloudct.optics import to_optical
 
-from cloudct.les import read_les  # noqa: E402
-from cloudct.medium import save_medium  # noqa: E402
-from cloudct.optics import to_optical  # noqa: E402
-
-LES = HERE.parent.parent / "shared" / "data" / "les"
+LES = REPO.parent / "shared" / "data" / "les"
 #: two_cumuli: how many of the largest clouds to skip (the stratocumulus) and to keep, and
 #: the margin of clear voxels around them.
 SKIP, KEEP, MARGIN = 1, 2, 2
@@ -96,7 +93,7 @@ def main() -> None:
     args = parser.parse_args()
     build, les_file = SCENES[args.scene]
     medium = build(read_les(args.les or LES / les_file))
-    output = Path(args.output or HERE / "work" / f"{args.scene}.nc")
+    output = Path(args.output or WORK / f"{args.scene}.nc")
     output.parent.mkdir(parents=True, exist_ok=True)
     save_medium(medium, output, overwrite=True)
     cloud = medium["cloud_extinction"].values

@@ -29,23 +29,16 @@ from mcstats import assert_consistent
 from numba import njit
 from scipy import integrate
 
-from cloudct.les import bundled_single_cloud
-from cloudct.mc.cameras import Camera, camera_arrays
+from cloudct.mc.cameras import camera_arrays
 from cloudct.mc.detector_sampling import DEFAULT_AIM_FRACTION, scatter_aimed
 from cloudct.mc.gradient import score_function_gradient
 from cloudct.mc.random import stream_start
 from cloudct.mc.render import kernel_inputs, render, render_batches
-from cloudct.mc.scene import Scene
-from cloudct.mc.sun import Sun
 from cloudct.optics import to_optical
 from cloudct.physics.mixing import mixture_phase_function
+from data_synth.single_cloud_piece import piece_microphysics, scene_of_piece
 
 BATCHES = 32
-
-
-def piece_microphysics():
-    """A 12 x 16 x 14 piece of the bundled single cloud (LWC and r_eff of the LES)."""
-    return bundled_single_cloud().isel(x=slice(2, 14), y=slice(14, 30), z=slice(2, 16))
 
 
 @pytest.fixture(scope="module")
@@ -60,20 +53,6 @@ def small_droplet_piece():
     micro = piece_microphysics()
     micro["reff"] = micro["reff"].where(micro["lwc"] <= 0.0, 4.0)
     return to_optical(micro, optics="mie")
-
-
-def scene_of_piece(medium) -> Scene:
-    """Three 16 x 16 cameras around the piece (the nadir one 24 degrees wide), sun at 20
-    degrees zenith: the scene of these tests and of ``benchmarks/mie_variance.py``."""
-    lo = np.array([float(medium[c][0]) for c in "xyz"]) - 0.01 * np.array([1, 1, 2])
-    hi = np.array([float(medium[c][-1]) for c in "xyz"]) + 0.01 * np.array([1, 1, 2])
-    centre = tuple((lo + hi) / 2)
-    cams = [
-        Camera((centre[0], centre[1], 2.0), centre, (0, 1, 0), fov=24.0, nrows=16, ncols=16),
-        Camera((centre[0] + 0.8, centre[1] - 0.5, 1.8), centre, fov=30.0, nrows=16, ncols=16),
-        Camera((centre[0] - 0.7, centre[1] + 0.4, 1.7), centre, fov=30.0, nrows=16, ncols=16),
-    ]
-    return Scene(cams, Sun(zenith=20.0, azimuth=60.0), "open")
 
 
 @pytest.fixture(scope="module")

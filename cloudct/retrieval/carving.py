@@ -13,7 +13,8 @@ Seed paper Sec. 6.1.1: the retrieval starts from the space-carved hull of the cl
    deviation (or a given threshold).
 3. **Votes.** A voxel is projected onto each view with the cameras' pinhole model
    (:func:`~cloudct.retrieval.cloudy_pixels.project_points`, the vectorised twin of
-   :func:`cloudct.mc.cameras.project`) at the centres of its ``subsamples``^3 sub-cells.
+   :func:`cloudct.mc.cameras.project`) at the centres of its sub-cells (``subsamples``
+   per axis).
    View v votes for the voxel when one of those points falls on a cloudy pixel, or when
    one falls outside the image or on a masked (NaN) pixel: a view cannot carve away what
    it does not see. With periodic boundaries a view sees every periodic copy of the voxel

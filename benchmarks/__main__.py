@@ -1,0 +1,117 @@
+"""``python -m benchmarks NAME [OPTIONS]``: run the benchmark NAME (``python -m benchmarks``
+lists them; ``python -m benchmarks NAME --help`` shows its options;
+``python -m benchmarks check PAGE.md ...`` parses every benchmark command a page shows,
+without running it)."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib
+import io
+import pkgutil
+import re
+import runpy
+import shlex
+import sys
+from pathlib import Path
+from unittest import mock
+
+import benchmarks
+
+#: Modules that are libraries of the benchmarks, not benchmarks themselves.
+LIBRARIES = {"common", "forward.mitsuba_peer"}
+
+
+def benchmark_names() -> list[str]:
+    """Every benchmark as ``area.name`` (the module under :mod:`benchmarks`)."""
+    names = []
+    for area in pkgutil.iter_modules(benchmarks.__path__):
+        if not area.ispkg:
+            if area.name not in LIBRARIES and not area.name.startswith("_"):
+                names.append(area.name)
+            continue
+        package = importlib.import_module(f"benchmarks.{area.name}")
+        names += [f"{area.name}.{m.name}" for m in pkgutil.iter_modules(package.__path__)
+                  if f"{area.name}.{m.name}" not in LIBRARIES]
+    return sorted(names)
+
+
+def summary(name: str) -> str:
+    """The first sentence of a benchmark's docstring, without importing cloudct's kernels."""
+    spec = importlib.util.find_spec(f"benchmarks.{name}")
+    with open(spec.origin, encoding="utf-8") as source:
+        text = source.read()
+    start = text.find('"""') + 3
+    paragraph = text[start:text.find("\n\n", start)].split('"""')[0]
+    sentence = " ".join(paragraph.split()).split(". ")[0]
+    return sentence.rstrip(".") + "."
+
+
+class _Parsed(Exception):
+    """Raised instead of running a benchmark whose options parsed."""
+
+
+def page_commands(page: Path) -> list[list[str]]:
+    """The ``python -m benchmarks NAME ...`` commands of a Markdown page's code blocks, as
+    argument lists (backslash continuations joined, comments dropped)."""
+    commands = []
+    for block in re.findall(r"^```[a-z]*\n(.*?)^```", page.read_text(), flags=re.S | re.M):
+        for line in block.replace("\\\n", " ").splitlines():
+            line = line.split(" #", 1)[0].strip()
+            if line.startswith("python -m benchmarks "):
+                commands.append(shlex.split(line)[3:])
+    return commands
+
+
+def parse_error(argv: list[str]) -> str | None:
+    """Why ``python -m benchmarks`` with ``argv`` would not start (an unknown benchmark or
+    options its parser refuses), or None: the benchmark is imported and its options parsed,
+    and it is stopped there."""
+    if argv[0] == "scenes" or argv[0] not in benchmark_names():  # scenes writes at parse
+        return None if argv[0] == "scenes" else f"no benchmark {argv[0]!r}"
+    parse = argparse.ArgumentParser.parse_args
+
+    def parse_then_stop(parser, args=None, namespace=None):
+        parse(parser, args, namespace)
+        raise _Parsed
+
+    saved, stderr = sys.argv, io.StringIO()
+    try:
+        with mock.patch.object(argparse.ArgumentParser, "parse_args", parse_then_stop), \
+                contextlib.redirect_stderr(stderr):
+            sys.argv = [f"benchmarks.{argv[0]}", *argv[1:]]
+            runpy.run_module(f"benchmarks.{argv[0]}", run_name="__main__")
+    except _Parsed:
+        return None
+    except SystemExit:
+        return f"{shlex.join(argv)}: {stderr.getvalue().strip().splitlines()[-1]}"
+    finally:
+        sys.argv = saved
+    return f"{shlex.join(argv)}: ran without parsing options"
+
+
+def main(argv: list[str]) -> int:
+    names = benchmark_names()
+    if argv and argv[0] == "check":
+        errors = [e for page in argv[1:] for cmd in page_commands(Path(page))
+                  if (e := parse_error(cmd))]
+        print("\n".join(errors) or "every command parses")
+        return 1 if errors else 0
+    if not argv or argv[0] in ("-h", "--help", "list"):
+        print(__doc__.strip(), "\n")
+        width = max(map(len, names))
+        for name in names:
+            print(f"  {name:<{width}}  {summary(name)}")
+        return 0
+    name = argv[0].replace("/", ".").removesuffix(".py")
+    if name not in names:
+        print(f"no benchmark {argv[0]!r}; one of: {', '.join(names)}", file=sys.stderr)
+        return 2
+    sys.argv = [f"benchmarks.{name}", *argv[1:]]
+    runpy.run_module(f"benchmarks.{name}", run_name="__main__", alter_sys=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

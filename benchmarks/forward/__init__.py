@@ -1,0 +1,1 @@
+"""Forward images: efficiency against Mitsuba 3, Mie optics, entry sampling, transmittance."""

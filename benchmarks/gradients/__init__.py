@@ -1,0 +1,1 @@
+"""Gradient estimators: cost, precision and signal per second."""

@@ -1,0 +1,212 @@
+"""Retrieval benchmark on the seed paper's single-cloud scene.
+
+Scene: the bundled RICO cloud 32x37x26 (the ``cloudct render`` default: Mie extinction at
+0.672 micron, air, open boundaries), or another medium given with ``--truth`` (e.g.
+``benchmarks/scenes.py``'s), sun at zenith, the nine 76x76 cameras. Noise-free
+measurements are rendered with ``--measurement-photons`` (cached in ``--work``), the
+initial medium is the space-carved hull filled in the excess profile (``--profile
+constant``: the seed paper's constant) at the fitted mean extinction
+(:func:`cloudct.retrieval.carving.carve`), and the retrieval runs for ``--minutes`` of
+iteration wall time (measurement synthesis and carving are not counted; the carving's wall
+time is reported).
+
+Reported (JSON at ``--output``): the settings, the machine and load average, the whole
+per-iteration log (loss, epsilon, delta, cumulative seconds, stage, resampling), and
+epsilon/delta at the time marks ``--marks`` (minutes; the last iteration finished by then),
+and the final medium's loss from fresh paths (``--final-loss-photons``, not timed): the
+logged losses of recycled runs come from the stored paths the steps were fitted to, and a
+single render's squared residual is biased by its variance, so runs are compared on
+``final_loss_fresh``, 1/2 sum w (I_A - m)(I_B - m) over two independent renders A and B.
+Usage::
+
+    python -m benchmarks retrieval.single_cloud --minutes 60 [--recycling none|fixed|adaptive]
+        [--photons 100000] [--step 2.0] [--voxel-blocks 4 2 1] [--output FILE.json]
+        [--medium-output FILE.nc] [--start FILE.nc]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from benchmarks.common import RESULTS, WORK, markdown_table, run_header, write_result
+from cloudct.cli.retrieve import add_run_options, config_from_options
+from cloudct.mc.render import render, single_cloud_medium
+from cloudct.mc.scene import Scene
+from cloudct.measurements import (
+    load_measurements,
+    save_measurements,
+    synthesize_measurements,
+)
+from cloudct.medium import load_medium
+from cloudct.retrieval.carving import PROFILES, carve, initial_medium
+from cloudct.retrieval.loop import Retrieval, coarse_measurements
+from cloudct.retrieval.loss import cross_loss, pixel_weights
+
+
+def measurements_for(truth, photons: int, work: Path, name: str = "single_cloud"):
+    """Noise-free measurements of the truth, rendered once and cached under ``name``."""
+    path = work / f"{name}_measurements_{photons}.nc"
+    if path.exists():
+        return load_measurements(path)
+    work.mkdir(parents=True, exist_ok=True)
+    measurements = synthesize_measurements(truth, photons=photons, seed=1)
+    save_measurements(measurements, path, overwrite=True)
+    return measurements
+
+
+def truth_and_measurements(truth_file: str | None, photons: int, work: Path):
+    """The true medium (``truth_file``, default the bundled single cloud) and its cached
+    noise-free measurements (:func:`measurements_for`, named after the file)."""
+    if truth_file is None:
+        truth, name = single_cloud_medium(), "single_cloud"
+    else:
+        truth, name = load_medium(truth_file), Path(truth_file).stem
+    return truth, measurements_for(truth, photons, work, name)
+
+
+def at_marks(log: dict, marks_s: list[float]) -> dict:
+    """epsilon, delta and loss of the last iteration finished by each time mark (and the
+    epsilon and delta of the iterate average, where the run averages)."""
+    seconds = np.asarray(log["seconds"])
+    out = {}
+    for mark in marks_s:
+        done = np.nonzero(seconds <= mark)[0]
+        key = f"{mark / 60:g}_min"
+        if mark > seconds[-1] * 1.001 + 1.0 or done.size == 0:
+            out[key] = None  # the run did not last that long
+            continue
+        i = int(done[-1])
+        out[key] = {
+            "iteration": i + 1, "seconds": float(seconds[i]), "epsilon": log["epsilon"][i],
+            "delta": log["delta"][i], "loss": log["loss"][i],
+            "epsilon_average": log["epsilon_average"][i],
+            "delta_average": log["delta_average"][i],
+        }
+    return out
+
+
+def fresh_loss(medium: xr.Dataset, data: xr.Dataset, photons: int, seed: int = 10**9) -> dict:
+    """The loss of ``medium`` against the measurements ``data`` from two independent fresh
+    renders A and B (seeds ``seed`` + 1 and + 2; paths no iteration used): the unbiased
+    1/2 sum w (I_A - m)(I_B - m), and A's squared residual (what a fresh iteration logs)
+    for comparison."""
+    w = pixel_weights(data)
+    m = data["radiance"].values
+    a, b = (
+        render(medium, Scene.from_dataset(data), photons=photons, seed=seed + k)
+        ["radiance"].values
+        for k in (1, 2)
+    )
+    return {"photons": photons, "loss": cross_loss(a, b, m, w),
+            "squared_residual": cross_loss(a, a, m, w)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--minutes", type=float, default=60.0)
+    parser.add_argument("--marks", type=float, nargs="+", default=[15.0, 60.0])
+    parser.add_argument("--measurement-photons", type=int, default=20_000_000)
+    parser.add_argument("--final-loss-photons", type=int, default=1_000_000,
+                        help="photons of each of the two fresh renders of the final loss "
+                             "(0: none)")
+    add_run_options(parser, iterations=1_000_000, photons=100_000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--work", default=str(WORK))
+    parser.add_argument("--output", default=str(RESULTS / "retrieval_single_cloud.json"))
+    parser.add_argument("--medium-output", default=None,
+                        help="also write the retrieved medium with its log (netCDF)")
+    parser.add_argument("--profile", default="excess", choices=PROFILES,
+                        help="shape of the carved start's extinction (cloudct.retrieval."
+                             "carving.carve); the runs before 2026-11-22 05:00 used 'constant'")
+    parser.add_argument("--truth", default=None,
+                        help="the true medium (netCDF, e.g. from benchmarks/scenes.py; "
+                             "default: the bundled single cloud), seen by the nine cameras "
+                             "around its box")
+    parser.add_argument("--start", default=None,
+                        help="start from this medium netCDF (e.g. a --medium-output; its "
+                             "cloud_mask is the hull) instead of the carved hull")
+    args = parser.parse_args()
+    if args.time_limit is not None:
+        parser.error("the run's length is --minutes")
+
+    t0 = time.perf_counter()
+    truth, measurements = truth_and_measurements(
+        args.truth, args.measurement_photons, Path(args.work)
+    )
+    synth_s = time.perf_counter() - t0
+    carving_s = None
+    if args.start is None:
+        t0 = time.perf_counter()
+        initial = initial_medium(carve(measurements, truth, profile=args.profile), truth)
+        mask, carving_s = None, time.perf_counter() - t0
+    else:
+        start = xr.load_dataset(args.start)
+        initial = truth.copy(deep=True)
+        initial["cloud_extinction"].values = start["cloud_extinction"].values.copy()
+        mask = start["cloud_mask"].values.astype(bool)
+    config = config_from_options(
+        args, seed=args.seed, time_limit=60.0 * args.minutes,
+        checkpoint_every=10**9,
+    )
+    result = {
+        **run_header(args),
+        "measurement_photons": args.measurement_photons,
+        "measurement_seconds": synth_s,
+        "carving_seconds": carving_s,
+        "start": args.start or f"carved hull, {args.profile} profile",
+        "config": {k: v for k, v in vars(config).items()},
+    }
+    run = Retrieval(measurements, initial, config, mask=mask, truth=truth)
+    eps0 = run.state.extinction
+    from cloudct.retrieval.metrics import epsilon_delta
+
+    result["initial"] = dict(zip(("epsilon", "delta"), epsilon_delta(run.truth, eps0),
+                                 strict=True))
+    retrieved = run.run(progress=True)
+    if args.medium_output is not None:
+        Path(args.medium_output).parent.mkdir(parents=True, exist_ok=True)
+        retrieved.to_netcdf(args.medium_output)
+    if args.final_loss_photons > 0:
+        stage_data = coarse_measurements(measurements, run.config.stages[run.state.stage])
+        result["final_loss_fresh"] = fresh_loss(run.medium(), stage_data, args.final_loss_photons)
+    log = {k: [float(x) for x in v] for k, v in run.state.log.items()}
+    result["log"] = log
+    result["iterations"] = run.state.iteration
+    result["decisions"] = run.state.decisions
+    result["final"] = {"epsilon": log["epsilon"][-1], "delta": log["delta"][-1],
+                       "loss": log["loss"][-1], "seconds": log["seconds"][-1],
+                       "stage": log["stage"][-1]}
+    result["marks"] = at_marks(log, [60.0 * m for m in args.marks])
+    result["load_average_end"] = os.getloadavg()
+    write_result(result, args.output, marks_markdown)
+
+
+def marks_markdown(result: dict) -> str:
+    """Epsilon, delta and the loss at the start, each time mark and the end, as a table."""
+    rows = [["start", "0", f"{result['initial']['epsilon']:.3f}",
+             f"{result['initial']['delta']:+.3f}", "", ""]]
+    for mark, v in result["marks"].items():
+        if v is not None:
+            rows.append([mark.replace("_", " "), str(v["iteration"]), f"{v['epsilon']:.3f}",
+                         f"{v['delta']:+.3f}", f"{v['loss']:.3g}",
+                         f"{v['epsilon_average']:.3f}"])
+    final = result["final"]
+    rows.append(["end", str(result["iterations"]), f"{final['epsilon']:.3f}",
+                 f"{final['delta']:+.3f}", f"{final['loss']:.3g}", ""])
+    fresh = result.get("final_loss_fresh")
+    lines = markdown_table(["time", "iteration", "epsilon", "delta", "loss",
+                            "epsilon of the average"], rows)
+    if fresh:
+        lines += ["", f"Final loss from fresh paths: {fresh['loss']:.3g} "
+                      f"({fresh['photons']} photons per render)."]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()
