@@ -84,7 +84,7 @@ def test_same_photon_same_path_on_the_gpu():
     n = nbatch * count
     path_sum, vertices = ck.device_zeros(n), ck.device_zeros(n, np.int64)
     dummy, events = ck.device_zeros((1, 1, 1)), ck.device_zeros(nbatch, np.int64)
-    ck._launch(
+    ck.launch_kernel(
         ck.forward_residual_kernel, n, ck.THREADS_PER_BLOCK, ck.device_scene(k), k.periodic,
         k.ground, 100, 0.95, 3, per_batch, first, count, nbatch,
         (ck.to_device(residual), events, path_sum, vertices, dummy, dummy),

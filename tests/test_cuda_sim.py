@@ -147,9 +147,9 @@ vertices = np.zeros(nbatch * count, np.int64)
 dummy = np.zeros((1, 1, 1))
 events = np.zeros(nbatch, np.int64)
 ck.THREADS_PER_BLOCK = 32
-ck._launch(ck.forward_residual_kernel, nbatch * count, 32, ck.device_scene(k), k.periodic,
-           k.ground, 100, 0.95, 7, per_batch, first, count, nbatch,
-           (residual, events, path_sum, vertices, dummy, dummy))
+ck.launch_kernel(ck.forward_residual_kernel, nbatch * count, 32, ck.device_scene(k), k.periodic,
+                 k.ground, 100, 0.95, 7, per_batch, first, count, nbatch, (residual, events,
+                 path_sum, vertices, dummy, dummy))
 cpu_sum, cpu_vertices = [], []
 for t in range(nbatch * count):
     index = (t // count) * per_batch + first + t % count

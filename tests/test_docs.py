@@ -53,3 +53,20 @@ def test_every_command_of_the_current_figures_parses():
     assert len(commands) >= 10
     assert [e for c in commands if (e := parse_error(c))] == []
     assert parse_error(["retrieval.single_cloud", "--minutes", "soon"]) is not None
+
+
+def docstring_example_modules() -> list[str]:
+    """The cloudct modules whose docstrings hold examples (``>>>``)."""
+    package = Path(__file__).resolve().parents[1] / "cloudct"
+    return sorted(".".join(f.relative_to(package.parent).with_suffix("").parts)
+                  for f in package.rglob("*.py") if ">>> " in f.read_text())
+
+
+@pytest.mark.parametrize("module", docstring_example_modules())
+def test_the_docstring_examples_run(module):
+    import doctest
+    import importlib
+
+    result = doctest.testmod(importlib.import_module(module), verbose=False,
+                             optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
+    assert result.attempted > 0 and result.failed == 0

@@ -365,13 +365,13 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
                         "inside the hull (default 1 at every stage, 0 with lbfgsb)")
     p.add_argument("--image-photons", type=float, nargs="+",
                    help="per stage: photons of the residual's images as a multiple of the "
-                        "gradient's (default 4 at every stage, 1 with lbfgsb)")
-    p.add_argument("--estimator", nargs="+", choices=ESTIMATORS,
-                   help="per stage: the gradient estimator, score (path score function, "
-                        "forward photons), drt (differential ratio tracking) or sm (sample "
-                        "matching), the last two tracing --photons camera paths; all three "
-                        "run on the workers of --workers or --scheduler (default sm, or score "
-                        "with a recycled gradient or lbfgsb)")
+                        "gradient's (default 2 at every stage, 1 with lbfgsb)")
+    p.add_argument("--estimator", nargs="+", choices=tuple(ESTIMATORS),
+                   help="per stage: the gradient estimator, "
+                        + ", ".join(f"{e.name}: {e.title}" for e in ESTIMATORS.values())
+                        + "; each traces --photons paths, on the workers of --workers or "
+                        "--scheduler where given (default sm, or score with a recycled "
+                        "gradient or lbfgsb)")
     p.add_argument("--pixel-sampling", choices=PIXEL_SAMPLINGS,
                    help="drt, sm: trace every pixel alike (uniform) or draw pixels in "
                         "proportion to |residual| (residual, the default)")

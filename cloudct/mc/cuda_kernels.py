@@ -254,7 +254,9 @@ def launch_count(nbatch: int, per_photon_bytes: int = 0, fraction: float = 0.5) 
     return max(1, limit // nbatch)
 
 
-def _check_fits(nbytes: int, what: str, advice: str = "use fewer batches") -> None:
+def check_fits(nbytes: int, what: str, advice: str = "use fewer batches") -> None:
+    """Refuse, before any launch, device buffers (``what``, ``nbytes``) that would take more
+    than 80 % of the free device memory, with ``advice`` on what to change."""
     free = free_memory()
     if nbytes > 0.8 * free:
         raise MemoryError(
@@ -263,12 +265,14 @@ def _check_fits(nbytes: int, what: str, advice: str = "use fewer batches") -> No
         )
 
 
-def _launch(kernel, nthreads: int, threads_per_block: int, *args) -> None:
+def launch_kernel(kernel, nthreads: int, threads_per_block: int, *args) -> None:
+    """Launch a CUDA ``kernel`` on at least ``nthreads`` threads in blocks of
+    ``threads_per_block`` (the kernels return early past their last photon)."""
     blocks = (nthreads + threads_per_block - 1) // threads_per_block
     kernel[blocks, threads_per_block](*args)
 
 
-class _Launcher(ABC):
+class Launcher(ABC):
     """Calls ``run(first, last)`` of :func:`cloudct.mc.render.run_in_rounds`: photons
     ``first .. last - 1`` of every batch, in launches of at most ``chunk`` per batch. The
     outputs stay on the device until the round that ends at ``per_batch``, which copies
@@ -311,7 +315,7 @@ class _Launcher(ABC):
         """Copy the device outputs into the caller's host arrays."""
 
 
-class ForwardLauncher(_Launcher):
+class ForwardLauncher(Launcher):
     """The CUDA counterpart of :func:`cloudct.mc.forward.forward_batches`, same arguments:
     RENDER fills ``images``, GRADIENT ``gradients`` (RESIDUAL then GRADIENT pass for every
     launch, the second in the order of :func:`sort_by_path_length` when ``sort_paths``)."""
@@ -333,11 +337,11 @@ class ForwardLauncher(_Launcher):
         self.events = device_zeros(self.nbatch, np.int64)
         self.dummy = device_zeros((1, 1, 1))
         if mode == RENDER:
-            _check_fits(images.nbytes, "the per-batch images")
+            check_fits(images.nbytes, "the per-batch images")
             self.images = device_zeros(images.shape)
             self.chunk = launch_count(self.nbatch)
         else:
-            _check_fits(gradients.nbytes, "the per-batch gradients")
+            check_fits(gradients.nbytes, "the per-batch gradients")
             self.gradients = device_zeros(gradients.shape)
             self.residual = to_device(residual)
             self.chunk = launch_count(self.nbatch, BYTES_PER_GRADIENT_PHOTON)
@@ -348,13 +352,13 @@ class ForwardLauncher(_Launcher):
         n = self.nbatch * count
         if self.mode == RENDER:
             out = (self.images, self.events, self.dummy, self.dummy)
-            _launch(forward_render_kernel, n, self.tpb, self.scene, *self.scalars, first, count,
-                    out)
+            launch_kernel(forward_render_kernel, n, self.tpb, self.scene, *self.scalars, first,
+                          count, out)
             return
         path_sum, vertices = self.path_sum, self.vertices
         out = (self.residual, self.events, path_sum, vertices, self.dummy, self.dummy)
-        _launch(forward_residual_kernel, n, self.tpb, self.scene, *self.scalars, first, count,
-                self.nbatch, out)
+        launch_kernel(forward_residual_kernel, n, self.tpb, self.scene, *self.scalars, first, count,
+                      self.nbatch, out)
         sums = to_host(path_sum[:n])
         if self.sort_paths:
             order = sort_by_path_length(to_host(vertices[:n]))
@@ -365,8 +369,8 @@ class ForwardLauncher(_Launcher):
             return
         out = (self.residual, self.gradients, path_sum, to_device(order.astype(np.int64)),
                self.dummy)
-        _launch(forward_gradient_kernel, order.size, self.tpb, self.scene, *self.scalars,
-                first, count, out)
+        launch_kernel(forward_gradient_kernel, order.size, self.tpb, self.scene, *self.scalars,
+                      first, count, out)
 
     def finish(self) -> None:
         images, gradients, events = self.host
@@ -377,7 +381,7 @@ class ForwardLauncher(_Launcher):
         events += to_host(self.events)
 
 
-class BackwardLauncher(_Launcher):
+class BackwardLauncher(Launcher):
     """The CUDA counterpart of :func:`cloudct.mc.backward.backward_batches`."""
 
     def __init__(
@@ -386,7 +390,7 @@ class BackwardLauncher(_Launcher):
     ):
         self._pixel_sample_setup(k, rr_depth, rr_survival, seed, per_batch, (images, events),
                                  threads_per_block)
-        _check_fits(images.nbytes, "the per-batch images")
+        check_fits(images.nbytes, "the per-batch images")
         self.images = device_zeros(images.shape)
         self.events = device_zeros(self.nbatch, np.int64)
         npix = int(np.prod(images.shape[1:]))
@@ -394,8 +398,8 @@ class BackwardLauncher(_Launcher):
 
     def launch(self, first: int, count: int) -> None:
         n = int(np.prod(self.images.shape)) * count
-        _launch(backward_kernel, n, self.tpb, self.scene, *self.scalars, first, count,
-                (self.images, self.events))
+        launch_kernel(backward_kernel, n, self.tpb, self.scene, *self.scalars, first, count,
+                      (self.images, self.events))
 
     def finish(self) -> None:
         images, events = self.host
@@ -404,7 +408,7 @@ class BackwardLauncher(_Launcher):
 
 
 
-class CameraGradientLauncher(_Launcher):
+class CameraGradientLauncher(Launcher):
     """The CUDA counterpart of :func:`cloudct.mc.camera_gradient.camera_gradient_batches`."""
 
     def __init__(
@@ -413,7 +417,7 @@ class CameraGradientLauncher(_Launcher):
     ):
         self._pixel_sample_setup(k, rr_depth, rr_survival, seed, per_batch,
                                  (gradients, events), threads_per_block)
-        _check_fits(gradients.nbytes, "the per-batch gradients")
+        check_fits(gradients.nbytes, "the per-batch gradients")
         self.method = method  # (estimator, probes, quadratic, mis)
         self.residual = to_device(residual)
         self.table = to_device(table)
@@ -424,9 +428,9 @@ class CameraGradientLauncher(_Launcher):
         self.chunk = max(1, MAX_LAUNCH // self.width)
 
     def launch(self, first: int, count: int) -> None:
-        _launch(camera_gradient_kernel, self.width * count, self.tpb, self.scene,
-                *self.scalars, first, count, *self.method,
-                (self.residual, self.table, self.gradients, self.events))
+        launch_kernel(camera_gradient_kernel, self.width * count, self.tpb, self.scene,
+                      *self.scalars, first, count, *self.method, (self.residual, self.table,
+                      self.gradients, self.events))
 
     def finish(self) -> None:
         gradients, events = self.host

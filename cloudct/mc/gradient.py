@@ -15,13 +15,17 @@ coefficient changes with its extinction; air is not differentiated.
 - Sample matching on the backward estimator (:mod:`cloudct.mc.sample_matching`), unbiased
   everywhere, with the scattering and attenuation terms evaluated at shared probe points.
 
-All return the mean over independent batches and its standard error per voxel;
-:func:`gradient_estimate` chooses one by name, as the retrieval does.
+All return the mean over independent batches and its standard error per voxel.
+:data:`ESTIMATORS` holds one record per estimator (:class:`GradientEstimator`: its name,
+what it traces and what it supports); :func:`gradient_estimate` runs one by name, as the
+retrieval, the command line and the diagnostics do.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import xarray as xr
@@ -37,9 +41,6 @@ from cloudct.mc.scene import Scene
 from cloudct.mc.sun import check_cloud_share
 from cloudct.mc.traversal import require_exponential, require_smooth_flight_density
 
-#: Gradient estimators by name: path score function (forward), differential ratio tracking
-#: and sample matching (both backward, from the cameras).
-ESTIMATORS = ("score", "drt", "sm")
 #: Sample matching's probes per segment by default (measured: docs/validation.md).
 SAMPLE_MATCHING_PROBES = 1
 
@@ -252,6 +253,75 @@ def sample_matching_gradient(
     )
 
 
+@dataclass(frozen=True)
+class GradientEstimator:
+    """What the retrieval, the command line and the diagnostics need to know of a gradient
+    estimator: its name and title, whether it traces camera paths (``paths`` are then
+    spread over the pixels with a non-zero residual, uniformly or in proportion to
+    |residual|) or forward photons (each serves every pixel), whether path recycling and
+    L-BFGS-B windows can replay its stored paths, the transmittance families it
+    differentiates, and ``run(medium, scene, residual, *, paths, seed, batches,
+    pixel_sampling, progress, backend, executor, entry_cloud_share)``."""
+
+    name: str
+    title: str
+    camera_side: bool
+    replayable: bool
+    transmittances: tuple[str, ...]
+    run: Callable[..., tuple[np.ndarray, np.ndarray, dict]]
+
+
+def _score_run(medium, scene, residual, *, paths, seed, batches, pixel_sampling, progress,
+               backend, executor, entry_cloud_share):
+    if pixel_sampling != "uniform":
+        raise ValueError("pixel_sampling applies to the camera-side estimators (drt, sm): "
+                         "one forward photon serves every pixel")
+    return score_function_gradient(
+        medium, scene, residual, photons=paths, seed=seed, batches=batches,
+        progress=progress, backend=backend, executor=executor,
+        entry_cloud_share=entry_cloud_share,
+    )
+
+
+def _camera_side_run(estimator: Callable) -> Callable:
+    """``run`` of a camera-side estimator: ``paths`` in all over the residual's pixels."""
+
+    def run(medium, scene, residual, *, paths, seed, batches, pixel_sampling, progress,
+            backend, executor, entry_cloud_share):
+        residual = check_residual(residual, scene)
+        pixels = max(int(np.count_nonzero(residual)), 1)
+        return estimator(
+            medium, scene, residual, samples_per_pixel=max(math.ceil(int(paths) / pixels), 1),
+            seed=seed, batches=batches, pixel_sampling=pixel_sampling, progress=progress,
+            backend=backend, executor=executor,
+        )
+
+    return run
+
+
+#: The gradient estimators by name.
+ESTIMATORS: dict[str, GradientEstimator] = {
+    e.name: e for e in (
+        GradientEstimator("score", "path score function (forward photons)", camera_side=False,
+                          replayable=True, transmittances=("exponential", "gamma"),
+                          run=_score_run),
+        GradientEstimator("drt", "differential ratio tracking (camera paths)",
+                          camera_side=True, replayable=False, transmittances=("exponential",),
+                          run=_camera_side_run(drt_gradient)),
+        GradientEstimator("sm", "sample matching (camera paths)", camera_side=True,
+                          replayable=False, transmittances=("exponential",),
+                          run=_camera_side_run(sample_matching_gradient)),
+    )
+}
+
+
+def gradient_estimator(name: str) -> GradientEstimator:
+    """The record of the estimator ``name``, or a ValueError that lists the names."""
+    if name not in ESTIMATORS:
+        raise ValueError(f"estimator must be one of {tuple(ESTIMATORS)}, got {name!r}")
+    return ESTIMATORS[name]
+
+
 def gradient_estimate(
     medium: xr.Dataset,
     scene: Scene,
@@ -281,27 +351,12 @@ def gradient_estimate(
     Returns ``(mean, std_error, info)``; ``info`` holds the estimator, the paths traced
     and the wall time in seconds.
     """
-    if estimator not in ESTIMATORS:
-        raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
+    record = gradient_estimator(estimator)
     check_cloud_share(entry_cloud_share)
-    if estimator == "score":
-        if pixel_sampling != "uniform":
-            raise ValueError("pixel_sampling applies to the camera-side estimators (drt, sm): "
-                             "one forward photon serves every pixel")
-        mean, std_error, info = score_function_gradient(
-            medium, scene, residual, photons=paths, seed=seed, batches=batches,
-            progress=progress, backend=backend, executor=executor,
-            entry_cloud_share=entry_cloud_share,
-        )
-        info["estimator"] = estimator
-        return mean, std_error, info
-    residual = check_residual(residual, scene)
-    pixels = max(int(np.count_nonzero(residual)), 1)
-    run = drt_gradient if estimator == "drt" else sample_matching_gradient
-    mean, std_error, info = run(
-        medium, scene, residual, samples_per_pixel=max(math.ceil(int(paths) / pixels), 1),
-        seed=seed, batches=batches, pixel_sampling=pixel_sampling, progress=progress,
-        backend=backend, executor=executor,
+    mean, std_error, info = record.run(
+        medium, scene, residual, paths=paths, seed=seed, batches=batches,
+        pixel_sampling=pixel_sampling, progress=progress, backend=backend,
+        executor=executor, entry_cloud_share=entry_cloud_share,
     )
     info["estimator"] = estimator
     return mean, std_error, info

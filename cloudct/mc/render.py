@@ -106,6 +106,27 @@ def render(
         earlier versions. The backward estimator ignores it. The share applied is the
         images' attribute ``entry_cloud_share`` (0 where no ray of the sun meets
         extinction: uniform entry).
+
+    Examples
+    --------
+    A cube of 20 /km, 200 m on a side, seen from 2 km above with the sun at the zenith:
+
+    >>> import numpy as np
+    >>> from cloudct.mc.cameras import Camera
+    >>> from cloudct.mc.scene import Scene
+    >>> from cloudct.mc.sun import Sun
+    >>> from cloudct.medium import optical_medium
+    >>> centres = np.linspace(0.01, 0.19, 10)  # km
+    >>> cube = optical_medium(centres, centres, centres, np.full((10, 10, 10), 20.0))
+    >>> camera = Camera((0.1, 0.1, 2.0), (0.1, 0.1, 0.1), up=(0, 1, 0), fov=10.0,
+    ...                 nrows=8, ncols=8)
+    >>> images = render(cube, Scene([camera], sun=Sun(zenith=0.0)), photons=20_000,
+    ...                 progress=False)
+    >>> images["radiance"].dims, images["radiance"].shape
+    (('view', 'row', 'col'), (1, 8, 8))
+    >>> radiance = images["radiance"].values[0]
+    >>> float(radiance[0, 0]), bool(radiance[3:5, 3:5].min() > 0.0)  # sky, cloud
+    (0.0, True)
     """
     batch_means, info = render_batches(
         medium, scene, photons=photons, method=method, seed=seed, batches=batches,

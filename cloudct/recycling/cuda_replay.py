@@ -154,7 +154,7 @@ def device_store(store) -> DeviceStore:
     if resident is not None and resident.source is store.arrays:
         return resident
     release_device_store(store)
-    ck._check_fits(
+    ck.check_fits(
         sum(a.nbytes for a in store.arrays) + 8 * store.records + 16 * store.paths,
         "the path store and its replay scratch",
         "record fewer paths or replay with backend='cpu'",
@@ -179,7 +179,7 @@ def _thread_order(resident: DeviceStore, sort_paths: bool | None):
     return resident.order(ck.SORT_PATHS if sort_paths is None else sort_paths)
 
 
-class ReplayLauncher(ck._Launcher):
+class ReplayLauncher(ck.Launcher):
     """The CUDA counterpart of :func:`~cloudct.recycling.replay_kernels.replay_render_batches`
     (``mode`` RENDER: ``out`` the per-batch images) and
     :func:`~cloudct.recycling.replay_kernels.replay_gradient_batches` (GRADIENT: ``out`` the
@@ -210,7 +210,7 @@ class ReplayLauncher(ck._Launcher):
             store.per_batch, bool(use_crossings), resident.arrays,
         )
         what = "the per-batch images" if mode == RENDER else "the per-batch gradients"
-        ck._check_fits(out.nbytes + log_ratio.nbytes, what + " and log r per path")
+        ck.check_fits(out.nbytes + log_ratio.nbytes, what + " and log r per path")
         self.out = device_zeros(out.shape)
         self.log_ratio = device_zeros(log_ratio.shape)
         self.events = device_zeros(self.nbatch, np.int64)
@@ -226,8 +226,8 @@ class ReplayLauncher(ck._Launcher):
         self.chunk = ck.launch_count(self.nbatch)
 
     def launch(self, first: int, count: int) -> None:
-        ck._launch(self.kernel, self.nbatch * count, self.tpb, self.scene, *self.args, first,
-                   count, self.buffers)
+        ck.launch_kernel(self.kernel, self.nbatch * count, self.tpb, self.scene, *self.args, first,
+                         count, self.buffers)
 
     def finish(self) -> None:
         out, log_ratio, events = self.host
@@ -244,7 +244,7 @@ def log_weights(
     :func:`~cloudct.recycling.replay_kernels.log_ratio_batches`, same arguments as
     :class:`ReplayLauncher`."""
     resident = device_store(store)
-    ck._check_fits(8 * store.paths, "log r per path")
+    ck.check_fits(8 * store.paths, "log r per path")
     log_ratio = device_zeros(store.paths)
     buffers = (to_device(beta), _thread_order(resident, sort_paths), log_ratio)
     scene = device_scene(k)
@@ -252,9 +252,9 @@ def log_weights(
     chunk = ck.launch_count(store.batches)
     for first in range(0, store.per_batch, chunk):
         count = min(chunk, store.per_batch - first)
-        ck._launch(log_ratio_kernel, store.batches * count, tpb, scene, k.periodic,
-                   store.per_batch, bool(use_crossings), resident.arrays, first, count,
-                   buffers)
+        ck.launch_kernel(log_ratio_kernel, store.batches * count, tpb, scene, k.periodic,
+                         store.per_batch, bool(use_crossings), resident.arrays, first, count,
+                         buffers)
     if not ck.SIMULATOR:
         cuda.synchronize()
     return to_host(log_ratio)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from cloudct.mc.gradient import ESTIMATORS
+from cloudct.mc.gradient import ESTIMATORS, gradient_estimator
 from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS
 from cloudct.retrieval.schedule import PLATEAU_ANSWERS, SCHEDULES
 
@@ -147,7 +147,8 @@ class RetrievalConfig:
             replayed = quasi_newton or (self.recycling != "none" and self.recycle_gradient)
             self.estimator = ("score" if replayed or model else "sm",) * len(self.stages)
         self.estimator = tuple(str(name) for name in self.estimator)
-        camera_side = any(name != "score" for name in self.estimator)
+        records = [gradient_estimator(name) for name in self.estimator]
+        camera_side = any(e.camera_side for e in records)
         if self.pixel_sampling is None:
             self.pixel_sampling = "residual" if camera_side else "uniform"
         per_stage = (self.stage_photons, self.voxel_blocks, self.stage_steps,
@@ -157,8 +158,6 @@ class RetrievalConfig:
                 "stages, stage_photons, voxel_blocks, stage_steps, gradient_smoothing, "
                 "image_photons and estimator must have the same, non-zero length"
             )
-        if any(name not in ESTIMATORS for name in self.estimator):
-            raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator}")
         if self.pixel_sampling not in PIXEL_SAMPLINGS:
             raise ValueError(
                 f"pixel_sampling must be one of {PIXEL_SAMPLINGS}, got {self.pixel_sampling!r}"
@@ -166,14 +165,17 @@ class RetrievalConfig:
         if self.pixel_sampling != "uniform" and not camera_side:
             raise ValueError("pixel_sampling applies to the camera-side estimators (drt, sm); "
                              "every stage uses the score function")
-        if camera_side and (quasi_newton or (self.recycling != "none"
-                                             and self.recycle_gradient)):
+        replay = [e.name for e in records if not e.replayable]
+        if replay and (quasi_newton or (self.recycling != "none" and self.recycle_gradient)):
             raise ValueError(
                 "recycled gradients (a recycling policy without recycle_gradient=False) and "
-                "optimizer 'lbfgsb' replay stored forward paths: they need the estimator "
-                "'score' at every stage"
+                "optimizer 'lbfgsb' replay stored forward paths, which the estimator "
+                f"{replay[0]!r} does not record: use "
+                f"{' or '.join(repr(e.name) for e in ESTIMATORS.values() if e.replayable)} "
+                "at every stage"
             )
-        if model and (camera_side or quasi_newton or self.recycling != "none"):
+        if model and (any("gamma" not in e.transmittances for e in records) or quasi_newton
+                      or self.recycling != "none"):
             raise ValueError(
                 "transmittance 'medium' (a non-exponential model) is differentiated by the "
                 "path score function alone, without stored paths: use the estimator 'score' "

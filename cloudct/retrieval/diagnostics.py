@@ -15,26 +15,21 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from cloudct.mc.gradient import (
-    ESTIMATORS,
-    drt_gradient,
-    sample_matching_gradient,
-    score_function_gradient,
-)
+from cloudct.mc.gradient import gradient_estimate, gradient_estimator
+from cloudct.mc.render import check_residual
 from cloudct.mc.scene import Scene
 
 
 def _estimate(
     estimator: str, medium: xr.Dataset, scene: Scene, residual: np.ndarray, samples: int, seed: int
 ) -> np.ndarray:
-    if estimator == "score":
-        return score_function_gradient(
-            medium, scene, residual, photons=samples, seed=seed, progress=False
-        )[0]
-    if estimator in ("drt", "sm"):
-        run = drt_gradient if estimator == "drt" else sample_matching_gradient
-        return run(medium, scene, residual, samples_per_pixel=samples, seed=seed)[0]
-    raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
+    """One estimate by ``estimator`` with ``samples`` forward photons (score) or samples of
+    every pixel with a non-zero residual (camera-side estimators)."""
+    residual = check_residual(residual, scene)
+    per_pixel = gradient_estimator(estimator).camera_side
+    paths = samples * max(int(np.count_nonzero(residual)), 1) if per_pixel else samples
+    return gradient_estimate(medium, scene, residual, estimator=estimator, paths=paths,
+                             seed=seed)[0]
 
 
 def gradient_statistics(

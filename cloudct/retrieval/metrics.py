@@ -23,7 +23,15 @@ def _fields(truth: np.ndarray, estimate: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def epsilon_delta(truth: np.ndarray, estimate: np.ndarray) -> tuple[float, float]:
-    """(epsilon, delta) of an estimated extinction field against the true one."""
+    """(epsilon, delta) of an estimated extinction field against the true one.
+
+    A retrieval that put 12 and 15 /km where the truth holds 10 and 20 /km is off by 7 of
+    the true 30 /km, and holds a tenth too little:
+
+    >>> import numpy as np
+    >>> epsilon_delta(np.array([0.0, 10.0, 20.0]), np.array([0.0, 12.0, 15.0]))
+    (0.23333333333333334, 0.1)
+    """
     truth, estimate, norm = _fields(truth, estimate)
     return (
         float(np.abs(truth - estimate).sum() / norm),

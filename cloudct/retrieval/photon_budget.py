@@ -62,7 +62,13 @@ def target_seconds(iteration_seconds: float | None, backend: str) -> float:
 
 def rescaled_count(photons: int, seconds: float, target: float) -> int | None:
     """The count that an iteration of ``photons`` paths taking ``seconds`` calls for to
-    take ``target`` seconds, or None when it is within the settled band already."""
+    take ``target`` seconds, or None when it is within the settled band already.
+
+    >>> rescaled_count(50_000, 2.0, 20.0)  # ten times too fast: ten times the paths
+    500000
+    >>> rescaled_count(50_000, 18.0, 20.0) is None  # close enough to the target
+    True
+    """
     ratio = target / seconds if seconds > 0.0 else MOST_UP
     if SETTLED[0] <= 1.0 / ratio <= SETTLED[1]:
         return None

@@ -96,9 +96,21 @@ def loss_slope(losses: np.ndarray, std_errors: np.ndarray) -> Slope:
 def noise_plateau(losses: np.ndarray, std_errors: np.ndarray, significance: float
                   ) -> tuple[bool, Slope]:
     """Whether the loss's decrease over the window is indistinguishable from zero at level
-    ``significance`` (one-sided), and the slope it was judged on."""
+    ``significance`` (one-sided), and the slope it was judged on.
+
+    A loss falling by 0.1 per iteration with standard errors of 0.01 is no plateau; a
+    flat one with that noise is:
+
+    >>> import numpy as np
+    >>> errors = np.full(20, 0.01)
+    >>> noise_plateau(5.0 - 0.1 * np.arange(20), errors, 0.05)[0]
+    False
+    >>> flat = 5.0 + 0.01 * np.random.default_rng(0).standard_normal(20)
+    >>> noise_plateau(flat, errors, 0.05)[0]
+    True
+    """
     slope = loss_slope(losses, std_errors)
-    return slope.t > -stats.t.isf(significance, slope.window - 2), slope
+    return bool(slope.t > -stats.t.isf(significance, slope.window - 2)), slope
 
 
 def threshold_plateau(losses: np.ndarray, window: int, tolerance: float) -> bool:
