@@ -10,7 +10,6 @@ import contextlib
 import importlib
 import io
 import pkgutil
-import re
 import runpy
 import shlex
 import sys
@@ -54,26 +53,33 @@ class _Parsed(Exception):
 
 def page_commands(page: Path) -> list[list[str]]:
     """The ``python -m benchmarks NAME ...`` commands of a Markdown page's code blocks, as
-    argument lists (backslash continuations joined, comments dropped)."""
-    commands = []
-    for block in re.findall(r"^```[a-z]*\n(.*?)^```", page.read_text(), flags=re.S | re.M):
-        for line in block.replace("\\\n", " ").splitlines():
-            line = line.split(" #", 1)[0].strip()
-            if line.startswith("python -m benchmarks "):
-                commands.append(shlex.split(line)[3:])
+    argument lists (backslash continuations joined, comments dropped); blocks fenced as
+    ``text`` hold templates, not commands, and are left out."""
+    commands, fence, lines = [], None, page.read_text().replace("\\\n", " ").splitlines()
+    for line in lines:
+        if line.startswith("```"):
+            fence = line[3:].strip() if fence is None else None
+            continue
+        line = line.split(" #", 1)[0].strip()
+        if fence not in (None, "text") and line.startswith("python -m benchmarks "):
+            commands.append(shlex.split(line)[3:])
     return commands
 
 
 def parse_error(argv: list[str]) -> str | None:
-    """Why ``python -m benchmarks`` with ``argv`` would not start (an unknown benchmark or
-    options its parser refuses), or None: the benchmark is imported and its options parsed,
-    and it is stopped there."""
+    """Why ``python -m benchmarks`` with ``argv`` would not reproduce its recorded run, or
+    None. The benchmark is imported and its options parsed, then stopped: an unknown
+    benchmark or options its parser refuses are reported; and where the benchmark records
+    its retrieval settings (a ``run_config(args)`` function, the result's ``config``) and
+    the result file of ``--output`` exists, the settings that today's defaults would change
+    (:func:`settings_drift`)."""
     if argv[0] == "scenes" or argv[0] not in benchmark_names():  # scenes writes at parse
         return None if argv[0] == "scenes" else f"no benchmark {argv[0]!r}"
     parse = argparse.ArgumentParser.parse_args
+    parsed = []
 
     def parse_then_stop(parser, args=None, namespace=None):
-        parse(parser, args, namespace)
+        parsed.append(parse(parser, args, namespace))
         raise _Parsed
 
     saved, stderr = sys.argv, io.StringIO()
@@ -81,14 +87,57 @@ def parse_error(argv: list[str]) -> str | None:
         with mock.patch.object(argparse.ArgumentParser, "parse_args", parse_then_stop), \
                 contextlib.redirect_stderr(stderr):
             sys.argv = [f"benchmarks.{argv[0]}", *argv[1:]]
-            runpy.run_module(f"benchmarks.{argv[0]}", run_name="__main__")
+            importlib.import_module(f"benchmarks.{argv[0]}").main()
     except _Parsed:
-        return None
+        module = importlib.import_module(f"benchmarks.{argv[0]}")
+        drift = settings_drift(module, parsed[0])
+        return f"{shlex.join(argv)}: add {drift}" if drift else None
     except SystemExit:
         return f"{shlex.join(argv)}: {stderr.getvalue().strip().splitlines()[-1]}"
     finally:
         sys.argv = saved
     return f"{shlex.join(argv)}: ran without parsing options"
+
+
+def settings_drift(module, args: argparse.Namespace) -> str:
+    """The options that would make ``args`` run the retrieval settings recorded in its
+    result file (``args.output``), as a string ("" when they match or nothing is
+    recorded). A setting that the run's version of cloudct did not have yet is compared
+    with what that version did (:func:`cloudct.retrieval.config_file.config_from_json`)."""
+    output = Path(str(getattr(args, "output", "")))
+    if not hasattr(module, "run_config") or not output.is_file():
+        return ""
+    import json
+
+    from cloudct.cli.retrieve import OPTION_NAMES
+    from cloudct.retrieval.config_file import config_from_json
+
+    result = json.loads(output.read_text())
+    recorded = result.get("config")
+    if recorded is None:
+        return ""
+    options = []
+    # the carved start's profile: recorded since the excess profile became the default
+    start = result.get("start", "carved hull" if result.get("date", "") < "2026-11-22 05:00"
+                       else "")
+    constant = start in ("carved hull", "carved hull, constant profile")
+    if constant and getattr(args, "profile", None) != "constant":
+        options.append("--profile constant")
+    stages = len(recorded["stages"])
+    for field, then in (("averaging", "none"), ("sparsity", 0.0),  # settings a run's
+                        ("gradient_smoothing", [0.0] * stages),      # version lacked: what
+                        ("image_photons", [1.0] * stages)):          # it did without them
+        recorded.setdefault(field, then)
+    then, now = vars(config_from_json(json.dumps(recorded))), vars(module.run_config(args))
+    for field, value in then.items():
+        if now.get(field) != value and field in OPTION_NAMES:
+            shown = " ".join(map(str, value)) if isinstance(value, tuple) else (
+                "" if isinstance(value, bool) else str(value))
+            if field == "recycle_gradient":
+                options.append("--fresh-gradient" if not value else "")
+            else:
+                options.append(f"{OPTION_NAMES[field]} {shown}".strip())
+    return " ".join(o for o in options if o)
 
 
 def main(argv: list[str]) -> int:

@@ -44,15 +44,28 @@ def test_every_tutorial_has_code():
     assert [p.stem for p in TUTORIALS if p.stem != "index" and not python_blocks(p)] == []
 
 
-def test_every_command_of_the_current_figures_parses():
-    """Each ``python -m benchmarks ...`` command on docs/benchmarks.md starts: the benchmark
-    exists and its options parse (it is stopped before it runs)."""
+@pytest.mark.parametrize("page", ["benchmarks.md", "benchmarks_log.md"])
+def test_every_benchmark_command_shown_reproduces_its_run(page):
+    """Each ``python -m benchmarks ...`` command of the page starts (the benchmark exists and
+    its options parse; it is stopped before it runs), and a retrieval's options give the
+    settings recorded in its result file (benchmarks.__main__.settings_drift)."""
     from benchmarks.__main__ import page_commands, parse_error
 
-    commands = page_commands(DOCS / "benchmarks.md")
+    commands = page_commands(DOCS / page)
     assert len(commands) >= 10
     assert [e for c in commands if (e := parse_error(c))] == []
-    assert parse_error(["retrieval.single_cloud", "--minutes", "soon"]) is not None
+
+
+def test_the_command_check_catches_what_does_not_reproduce():
+    from benchmarks.__main__ import parse_error
+
+    assert "invalid float value" in parse_error(["retrieval.single_cloud", "--minutes", "soon"])
+    # a 2026-11-25 run recorded the 2 % threshold schedule, which is no longer the default
+    old = ["retrieval.single_cloud", "--truth", "benchmarks/work/two_cumuli.nc", "--minutes",
+           "60", "--stages", "2", "--photons", "200000", "--image-photons", "4", "--step", "1.0",
+           "--sparsity", "0.01", "--estimator", "score", "--output",
+           "benchmarks/results/retrieval_two_cumuli_60min_score.json"]
+    assert "--schedule threshold" in parse_error(old)
 
 
 def docstring_example_modules() -> list[str]:

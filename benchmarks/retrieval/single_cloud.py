@@ -45,6 +45,7 @@ from cloudct.measurements import (
 )
 from cloudct.medium import load_medium
 from cloudct.retrieval.carving import PROFILES, carve, initial_medium
+from cloudct.retrieval.config import RetrievalConfig
 from cloudct.retrieval.loop import Retrieval, coarse_measurements
 from cloudct.retrieval.loss import cross_loss, pixel_weights
 
@@ -107,6 +108,12 @@ def fresh_loss(medium: xr.Dataset, data: xr.Dataset, photons: int, seed: int = 1
             "squared_residual": cross_loss(a, a, m, w)}
 
 
+def run_config(args: argparse.Namespace) -> RetrievalConfig:
+    """The retrieval settings a run with these options uses (recorded as its ``config``)."""
+    return config_from_options(args, seed=args.seed, time_limit=60.0 * args.minutes,
+                               checkpoint_every=10**9)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=60.0)
@@ -150,10 +157,7 @@ def main() -> None:
         initial = truth.copy(deep=True)
         initial["cloud_extinction"].values = start["cloud_extinction"].values.copy()
         mask = start["cloud_mask"].values.astype(bool)
-    config = config_from_options(
-        args, seed=args.seed, time_limit=60.0 * args.minutes,
-        checkpoint_every=10**9,
-    )
+    config = run_config(args)
     result = {
         **run_header(args),
         "measurement_photons": args.measurement_photons,
