@@ -23,6 +23,8 @@ def python_blocks(page: Path) -> list[str]:
     return re.findall(r"^```python\n(.*?)^```", page.read_text(), flags=re.S | re.M)
 
 
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # Sphinx's own extensions on
+@pytest.mark.filterwarnings("ignore::PendingDeprecationWarning")  # Sphinx's next API
 def test_the_site_builds_without_warnings(tmp_path):
     from sphinx.cmd.build import build_main
 
