@@ -130,14 +130,16 @@ def settings_drift(module, args: argparse.Namespace) -> str:
         recorded.setdefault(field, then)
     then, now = vars(config_from_json(json.dumps(recorded))), vars(module.run_config(args))
     for field, value in then.items():
-        if now.get(field) != value and field in OPTION_NAMES:
-            shown = " ".join(map(str, value)) if isinstance(value, tuple) else (
-                "" if isinstance(value, bool) else str(value))
-            if field == "recycle_gradient":
-                options.append("--fresh-gradient" if not value else "")
-            else:
-                options.append(f"{OPTION_NAMES[field]} {shown}".strip())
-    return " ".join(o for o in options if o)
+        if now.get(field) == value or field not in OPTION_NAMES:
+            continue
+        if field == "recycle_gradient":  # a flag: --fresh-gradient sets it False
+            options.append("--fresh-gradient" if not value else "(without --fresh-gradient)")
+        elif value is None:  # an option that was not given
+            options.append(f"(without {OPTION_NAMES[field]})")
+        else:
+            shown = " ".join(map(str, value)) if isinstance(value, tuple) else str(value)
+            options.append(f"{OPTION_NAMES[field]} {shown}")
+    return " ".join(options)
 
 
 def main(argv: list[str]) -> int:
