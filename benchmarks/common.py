@@ -60,9 +60,11 @@ def run_header(args: argparse.Namespace | None = None) -> dict:
     """What a result records of its run: machine, numba threads, load average, versions,
     commit (``+changes``: cloudct's sources differ from it), date, the exact command and,
     given the parsed ``args``, every setting it ran with."""
+    import numba
+
     header = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
-        "numba_threads": int(os.environ.get("NUMBA_NUM_THREADS", os.cpu_count())),
+        "numba_threads": numba.get_num_threads(),
         "load_average_start": os.getloadavg(),
         "versions": versions(),
         "commit": commit(),

@@ -9,6 +9,7 @@ as a reader would paste them (they use small photon counts).
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -53,9 +54,13 @@ def test_every_benchmark_command_shown_reproduces_its_run(page):
     settings recorded in its result file (benchmarks.__main__.settings_drift)."""
     from benchmarks.__main__ import page_commands, parse_error
 
+    environment = dict(os.environ)
     commands = page_commands(DOCS / page)
     assert len(commands) >= 10
     assert [e for c in commands if (e := parse_error(c))] == []
+    # importing a benchmark changes nothing of the process (a NUMBA_NUM_THREADS set on
+    # import made every later parallel kernel of the test session refuse to run)
+    assert dict(os.environ) == environment
 
 
 def test_the_command_check_catches_what_does_not_reproduce():

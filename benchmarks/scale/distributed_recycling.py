@@ -21,18 +21,15 @@ paths stay on the workers. Usage::
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
+import statistics
+import time
 
-os.environ["NUMBA_NUM_THREADS"] = "1"  # the serial reference: one thread, like each worker
+import numpy as np
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import statistics  # noqa: E402
-import time  # noqa: E402
-
-import numpy as np  # noqa: E402
-
-from benchmarks.common import RESULTS, run_header, write_result  # noqa: E402
+from benchmarks.common import RESULTS, run_header, write_result
 
 
 def main() -> None:
@@ -53,7 +50,10 @@ def main() -> None:
     from cloudct.medium import cell_edges
     from cloudct.recycling import FixedPeriod, Recycler
 
-    assert numba.config.NUMBA_NUM_THREADS == 1
+    # one numba thread in this process (the serial reference), like each worker
+    # (cloudct.distributed.local_cluster(threads=1)); set here, not on import, so that
+    # importing the module (python -m benchmarks check) changes nothing
+    numba.set_num_threads(1)
     medium = single_cloud_medium()
     edges = cell_edges(medium)
     scene = single_cloud_scene(np.array([e[0] for e in edges]), np.array([e[-1] for e in edges]))
