@@ -1,6 +1,7 @@
-"""Space carving: projection, clear-sky background, the hull of a known convex blob (open
-and periodic boundaries), the initial medium, the extinction fit, bad input and the
-``carve`` command."""
+"""Space carving: projection and pixel rays (pinhole and orthographic), clear-sky
+background, the hull of a known convex blob (open and periodic boundaries, pinhole and
+orthographic cameras), the initial medium, the extinction fit, bad input and the ``carve``
+command."""
 
 from __future__ import annotations
 
@@ -8,7 +9,13 @@ import numpy as np
 import pytest
 
 from cloudct.cli import main
-from cloudct.mc.cameras import camera_arrays, nine_camera_set, project
+from cloudct.mc.cameras import (
+    camera_arrays,
+    nine_camera_set,
+    orthographic_camera,
+    pixel_ray,
+    project,
+)
 from cloudct.mc.render import render, render_batches
 from cloudct.mc.scene import Scene
 from cloudct.mc.sun import Sun
@@ -17,7 +24,12 @@ from cloudct.medium import cell_edges, load_medium, save_medium, validate_medium
 from cloudct.optics import to_optical
 from cloudct.retrieval import carving
 from cloudct.retrieval.carving import carve, default_k, fit_extinction, initial_medium
-from cloudct.retrieval.cloudy_pixels import clear_sky_background, project_points
+from cloudct.retrieval.cloudy_pixels import (
+    clear_sky_background,
+    pixel_ray_origins,
+    pixel_rays,
+    project_points,
+)
 from cloudct.retrieval.metrics import epsilon_delta
 from data_synth.synthetic_cloud import blob_cloud, synthetic_cloud
 
@@ -40,15 +52,46 @@ def blob_measurements(blob):
     return synthesize_measurements(blob, scene, photons=400_000, seed=1, progress=False)
 
 
-def test_project_points_is_the_engines_projection():
-    cams = camera_arrays(nine_camera_set(np.zeros(3), np.array([0.6, 0.7, 1.0]), npix=20))
+def orthographic_views(target, width: float, npix: int) -> list:
+    """Five orthographic cameras 2 km from ``target``: one looking down, four 40 degrees
+    from the zenith at azimuths 0, 90, 180 and 270."""
+    views = [(0.0, 0.0)] + [(40.0, azimuth) for azimuth in (0.0, 90.0, 180.0, 270.0)]
+    return [orthographic_camera(target, zenith, azimuth, width=width, nrows=npix, distance=2.0)
+            for zenith, azimuth in views]
+
+
+def camera_sets() -> dict:
+    """Pinhole and orthographic cameras around the box [0, 0.6] x [0, 0.7] x [0, 1]."""
+    lo, hi = np.zeros(3), np.array([0.6, 0.7, 1.0])
+    return {"pinhole": camera_arrays(nine_camera_set(lo, hi, npix=20)),
+            "orthographic": camera_arrays(orthographic_views(0.5 * (lo + hi), 1.2, 20))}
+
+
+@pytest.mark.parametrize("projection", ["pinhole", "orthographic"])
+def test_project_points_is_the_engines_projection(projection):
+    cams = camera_sets()[projection]
     points = np.random.default_rng(0).uniform(-0.5, 1.5, size=(2000, 3))
-    for view in (0, 3, 8):
+    for view in (0, 3, 4):
         row, col = project_points(cams, view, points)
         expected = np.array([project(cams, view, *p)[:2] for p in points])
         np.testing.assert_array_equal(row, expected[:, 0])
         np.testing.assert_array_equal(col, expected[:, 1])
         assert 0 < np.sum(row >= 0) < len(points)
+
+
+@pytest.mark.parametrize("projection", ["pinhole", "orthographic"])
+def test_pixel_rays_are_the_engines_rays(projection):
+    """The carving's rays through 2 x 2 sub-pixel centres are those of the backward
+    estimator's :func:`pixel_ray` at the same points of the pixel, to rounding."""
+    cams = camera_sets()[projection]
+    for view in (0, 3):
+        origins, rays = pixel_ray_origins(cams, view, 2), pixel_rays(cams, view, 2)
+        assert origins.shape == rays.shape == (20, 20, 4, 3)
+        for row, col in ((0, 0), (3, 17), (19, 8)):
+            for k, (a, b) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+                ray = pixel_ray(cams, view, row, col, 0.25 + 0.5 * b, 0.25 + 0.5 * a)
+                np.testing.assert_allclose(origins[row, col, k], ray[:3], rtol=0, atol=1e-12)
+                np.testing.assert_allclose(rays[row, col, k], ray[3:], rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize(
@@ -94,6 +137,32 @@ def test_carving_recovers_the_blob(blob, blob_measurements):
     cloudy = carved.cloud_mask.values.astype(bool)
     silhouette = carved.hull_silhouette.values.astype(bool)
     assert np.sum(cloudy & silhouette) >= 0.95 * cloudy.sum() > 0
+
+
+def test_carving_with_orthographic_cameras_recovers_the_blob(blob):
+    """Five orthographic views (32 x 32 pixels, 0.64 km wide, one looking down and four 40
+    degrees from the zenith), 200 000 photons: every blob voxel but 3 % at the edge is in
+    the hull (measured 2.4 %), IoU > 0.6 (measured 0.70: 754 hull voxels for 552), the
+    silhouettes cover the cloudy pixels, and the hull filled at the fitted extinction
+    renders as bright as the measurements."""
+    scene = Scene(orthographic_views((0.16, 0.16, 0.24), 0.64, 32), Sun(0.0, 0.0))
+    measured = synthesize_measurements(blob, scene, photons=200_000, seed=1, progress=False)
+    truth = blob.cloud_extinction.values > 0
+    carved = carve(measured, blob, fit_photons=20_000)
+    hull = carved.hull.values.astype(bool)
+    missed = np.sum(truth & ~hull) / truth.sum()
+    iou = np.sum(truth & hull) / np.sum(truth | hull)
+    cloudy = carved.cloud_mask.values.astype(bool)
+    silhouette = carved.hull_silhouette.values.astype(bool)
+    images = render(initial_medium(carved, blob), scene, photons=40_000, seed=7,
+                    progress=False)
+    ratio = images.radiance.values.sum() / measured.radiance.values.sum()
+    print(f"orthographic: blob {truth.sum()} voxels, hull {hull.sum()}, missed {missed:.3f}, "
+          f"IoU {iou:.3f}; fitted extinction {carved.attrs['extinction_estimate']:.3g} km-1, "
+          f"brightness ratio {ratio:.3f}")
+    assert missed <= 0.03 and iou > 0.6
+    assert np.sum(cloudy & silhouette) >= 0.95 * cloudy.sum() > 0
+    assert ratio == pytest.approx(1.0, abs=0.05)
 
 
 @pytest.fixture(scope="module")

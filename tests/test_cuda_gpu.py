@@ -10,8 +10,9 @@ occasionally take a different branch. Hence:
   (independent estimates of the same expectation, :func:`mcstats.assert_consistent`);
 - path recycling: the GPU replay of a store and the CPU replay of the same store (the same
   paths, no branching on random numbers) agree to 1e-9 relative;
-- same seed, every gradient estimator (score, DRT, sample matching): the same gradient to
-  rounding, but for the rare paths that branch otherwise (:func:`assert_same_to_rounding`);
+- same seed, every gradient estimator (score, DRT, sample matching), with pinholes and with
+  an orthographic camera: the same gradient to rounding, but for the rare paths that branch
+  otherwise (:func:`assert_same_to_rounding`);
 - a second process loads the kernels that the first compiled from the on-disk cache.
 
 Run on a GPU machine with ``python -m pytest tests/test_cuda_gpu.py tests/test_cuda_sim.py``.
@@ -36,7 +37,7 @@ if importlib.util.find_spec("numba_cuda") is None:
 
 from numba import config, cuda  # noqa: E402
 
-from cloudct.mc.cameras import Camera  # noqa: E402
+from cloudct.mc.cameras import Camera, orthographic_camera  # noqa: E402
 from cloudct.mc.forward import RESIDUAL, trace_photon  # noqa: E402
 from cloudct.mc.gradient import gradient_estimate, score_function_gradient  # noqa: E402
 from cloudct.mc.render import kernel_inputs, render_batches  # noqa: E402
@@ -230,6 +231,23 @@ def test_same_seed_gradients_equal_the_cpus(estimator, pixel_sampling):
     gpu = gradient_estimate(medium, scene, residual, backend="cuda", **kw)
     assert (cpu[2]["backend"], gpu[2]["backend"]) == ("cpu", "cuda")
     assert_same_to_rounding(gpu[0], cpu[0], f"{estimator} ({pixel_sampling}) same seed")
+
+
+@pytest.mark.parametrize("estimator", ["score", "drt", "sm"])
+def test_same_seed_gradients_of_orthographic_cameras_equal_the_cpus(estimator):
+    """An orthographic camera beside a pinhole: every gradient estimator, same seed on both
+    back ends, the same gradient to rounding (as for pinholes above)."""
+    medium, scene = medium_and_scene()
+    ortho = orthographic_camera((0.3, 0.3, 0.8), 30.0, 200.0, width=0.6, nrows=8,
+                                distance=2.0)
+    scene = Scene([ortho, scene.cameras[0]], scene.sun, scene.boundary, scene.ground_albedo)
+    residual = np.random.default_rng(2).normal(size=(2, 8, 8))
+    paths = 400_000 if estimator == "score" else 64 * 2 * 8 * 8
+    kw = dict(estimator=estimator, paths=paths, batches=BATCHES, seed=3)
+    cpu = gradient_estimate(medium, scene, residual, backend="cpu", **kw)
+    gpu = gradient_estimate(medium, scene, residual, backend="cuda", **kw)
+    assert (cpu[2]["backend"], gpu[2]["backend"]) == ("cpu", "cuda")
+    assert_same_to_rounding(gpu[0], cpu[0], f"{estimator}, orthographic camera, same seed")
 
 
 def test_a_second_process_loads_the_kernels_from_the_cache(tmp_path):

@@ -16,17 +16,20 @@
      paper Sec. 5.3), only the order of the additions into an element can differ: equal **to
      float64 rounding** (rtol 1e-12, atol 1e-12 x the largest element); vertex counts exact.
 
-   Path recycling (:mod:`cloudct.recycling.cuda_replay`, one thread per stored path)
-   against the CPU replay of the same store: log r per path **bitwise** in every thread
-   order; images and gradients **bitwise** with one thread per block in photon order, **to
-   float64 rounding** in the storage-slot order of a sorted store (path sorting) and with 32
-   threads per block; event counts exact.
+   Orthographic cameras: renders and the three gradient estimators to float64 rounding.
+
+   Path recycling (:mod:`cloudct.recycling.cuda_replay`, one thread per stored path; stores
+   of pinhole and of orthographic cameras) against the CPU replay of the same store: log r
+   per path **bitwise** in every thread order; images and gradients **bitwise** with one
+   thread per block in photon order, **to float64 rounding** in the storage-slot order of a
+   sorted store (path sorting) and with 32 threads per block; event counts exact.
 
    The simulator runs the ``@njit`` routines as CPU code: it checks the kernels' indexing,
    launches, passes and reductions, not the GPU compilation.
 2. GPU compilation without a GPU: each kernel, with every ``@njit`` routine it calls and the
    atomic CUDA implementation of ``add_to``, is compiled to PTX for sm_90 by NVVM and
-   assembled by ptxas (from the ``cu12`` toolkit wheels of the ``test`` extra).
+   assembled by ptxas (from the ``cu12`` toolkit wheels of the ``test`` extra): in
+   ``test_cuda_ptx.py``, which shares this file's scenes and subprocess runner.
 3. Back-end choice in this process (no GPU): ``auto`` falls back to the CPU with a warning,
    ``cuda`` raises (render and replay).
 
@@ -53,7 +56,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 SCENES = """
 import numpy as np
-from cloudct.mc.cameras import Camera
+from cloudct.mc.cameras import Camera, orthographic_camera
 from cloudct.mc.scene import Scene
 from cloudct.mc.sun import Sun
 from cloudct.medium import optical_medium, with_transmittance
@@ -68,6 +71,13 @@ cams = [Camera((0.2, 0.2, 3.0), (0.2, 0.2, 0.7), (0, 1, 0), fov=20.0, nrows=6, n
         Camera((1.5, 0.2, 2.5), (0.2, 0.2, 0.7), (0, 0, 1), fov=20.0, nrows=6, ncols=6)]
 scenes = {"open": Scene(cams, Sun(30.0, 20.0), "open", 0.3),
           "periodic": Scene(cams[:1], Sun(20.0, 60.0), "periodic", None)}
+# orthographic cameras: beside a pinhole over the open box, alone over the periodic slab
+ortho_scenes = {
+    "open": Scene([orthographic_camera((0.2, 0.2, 0.7), 25.0, 120.0, width=0.3, nrows=6,
+                                       distance=2.0), cams[0]], Sun(30.0, 20.0), "open", 0.3),
+    "periodic": Scene([orthographic_camera((0.2, 0.2, 0.7), 20.0, 60.0, width=0.6, nrows=6,
+                                           distance=3.0)], Sun(20.0, 60.0), "periodic", None),
+}
 """
 
 COMPARE = """
@@ -139,6 +149,31 @@ for tpb in (1, 32):
         out[f"{name}/tpb{tpb}"] = compare(runs[0][0], runs[1][0])
         out[f"{name}/tpb{tpb}"]["events"] = [runs[0][2]["events"], runs[1][2]["events"]]
 
+# orthographic cameras: renders, the score-function gradient (aimed paths, re-traced by
+# path length) and the camera-side gradients, blocks of 32 threads
+ck.THREADS_PER_BLOCK, ck.SORT_PATHS = 32, True
+for name, scene in ortho_scenes.items():
+    res = residual[:len(scene.cameras)]
+    for label, method, n, aim in (("forward", "forward", 256, None),
+                                  ("aimed", "forward", 256, 0.3),
+                                  ("backward", "backward", 8, None)):
+        runs = [render_batches(medium, scene, photons=n, batches=4, method=method,
+                               aim_fraction=aim, progress=False, backend=b)
+                for b in ("cpu", "cuda")]
+        out[f"orthographic-{label}/{name}"] = case = compare(runs[0][0], runs[1][0])
+        case["events"] = [runs[0][1]["events"], runs[1][1]["events"]]
+        case["backend"] = runs[1][1]["backend"]
+    for label, estimate, kw in (
+        ("score", score_function_gradient, {"photons": 256, "aim_fraction": 0.3}),
+        ("drt", drt_gradient, {"samples_per_pixel": 4}),
+        ("sm", sample_matching_gradient, {"samples_per_pixel": 4}),
+    ):
+        runs = [estimate(medium, scene, res, batches=4, backend=b, progress=False, **kw)
+                for b in ("cpu", "cuda")]
+        out[f"orthographic-{label}/{name}"] = case = compare(runs[0][0], runs[1][0])
+        case["events"] = [runs[0][2]["events"], runs[1][2]["events"]]
+        case["backend"] = runs[1][2]["backend"]
+
 # per photon: the RESIDUAL pass kernel against trace_photon called on the CPU
 k = kernel_inputs(medium, scenes["open"])
 nbatch, per_batch, first, count = 3, 40, 5, 30
@@ -181,9 +216,13 @@ stores = [(name, storage, sort, {}) for name in scenes for storage in STORAGE
 if "connections" in STORAGE:  # camera connections of the variable (cloud) voxels only
     stores.append(("open", "connections", True, {"variable": ext > 0}))
 stores.append(("open", "crossings", True, {"aim_fraction": 0.3}))  # aimed paths
+# orthographic cameras: stored camera connections, and connections recomputed
+all_scenes = {**scenes, **{f"orthographic-{n}": s for n, s in ortho_scenes.items()}}
+stores += [("orthographic-open", "connections", True, {}),
+           ("orthographic-periodic", "crossings", True, {})]
 out = {}
 for name, storage, sort, extra in stores:
-    scene = scenes[name]
+    scene = all_scenes[name]
     res = residual[:len(scene.cameras)]
     store = record_paths(medium, scene, photons=48, batches=3, seed=5, storage=storage,
                          sort=sort, **extra)
@@ -238,112 +277,6 @@ def cached_then_freed():
 out["device_store"] = cached_then_freed()
 print("RESULT " + json.dumps(out))
 """
-
-PTX_SCRIPT = SCENES + """
-import json, os, subprocess, tempfile
-from types import SimpleNamespace
-import numba.cuda.dispatcher as dispatcher
-from numba import cuda
-from numba.cuda.typing.typeof import typeof
-
-CC = (9, 0)
-# numba-cuda compiles the @njit routines a kernel calls for the current device's compute
-# capability; there is no device here, so name one.
-assert hasattr(dispatcher, "get_current_device"), "numba-cuda internals changed"
-dispatcher.get_current_device = lambda: SimpleNamespace(compute_capability=CC)
-import cloudct.mc.cuda_kernels as ck
-from cloudct.mc.pixel_sampling import residual_table
-from cloudct.mc.render import kernel_inputs
-
-k = kernel_inputs(medium, scenes["open"])
-scene = ck.DeviceScene(k.grid, k.bank, k.cams, k.copies, k.sun)
-scalars = (k.periodic, k.ground, 100, 0.95, 0, 10)
-images, events, d = np.zeros((4, 2, 6, 6)), np.zeros(4, np.int64), np.zeros((1, 1, 1))
-gradients, residual = np.zeros((4, 4, 4, 4)), np.zeros((2, 6, 6))
-path_sum, vertices = np.zeros(8), np.zeros(8, np.int64)
-cases = {
-    "forward_render_kernel": (scene, *scalars, 0, 2, (images, events, d, d)),
-    "forward_residual_kernel": (scene, *scalars, 0, 2, 4,
-                                (residual, events, path_sum, vertices, d, d)),
-    "forward_gradient_kernel": (scene, *scalars, 0, 2, (residual, gradients, path_sum,
-                                                        vertices, d)),
-    "backward_kernel": (scene, *scalars, 0, 2, (images, events)),
-    "camera_gradient_kernel": (scene, *scalars, 0, 2, 1, 2, False, True,
-                               (residual, residual_table(residual + 1.0), gradients, events)),
-}
-kernels = dict.fromkeys(cases, ck)
-
-# the replay kernels of path recycling, on a store's arrays
-import cloudct.recycling.cuda_replay as cr
-from cloudct.recycling import record_paths
-
-store = record_paths(medium, scenes["open"], photons=8, batches=2, seed=3)
-beta, order, log_r = np.zeros(64), np.zeros(8, np.int64), np.zeros(8)
-scratch = np.zeros(store.records)
-replay = (scene, k.periodic, k.ground, 100, 0.95, 1.0, 4, True, store.arrays, 0, 4)
-cases["replay_render_kernel"] = (*replay, (beta, order, images, log_r, events, scratch, d))
-cases["replay_gradient_kernel"] = (*replay, (beta, order, residual, gradients, log_r, events,
-                                             scratch, d))
-cases["log_ratio_kernel"] = (scene, k.periodic, 4, True, store.arrays, 0, 4,
-                             (beta, order, log_r))
-kernels.update(dict.fromkeys(["replay_render_kernel", "replay_gradient_kernel",
-                              "log_ratio_kernel"], cr))
-
-
-def link_with_reshape(ptx):
-    # array.reshape in a kernel calls numba_attempt_nocopy_reshape, which numba-cuda links
-    # from its reshape_funcs.cu at launch (compiled by NVRTC); do the same with nvJitLink
-    import numba_cuda
-    from cuda.bindings import nvjitlink, nvrtc
-
-    path = os.path.join(os.path.dirname(numba_cuda.__file__), "numba", "cuda",
-                        "reshape_funcs.cu")
-    with open(path, "rb") as f:
-        _, prog = nvrtc.nvrtcCreateProgram(f.read(), b"reshape_funcs.cu", 0, [], [])
-    options = [b"-arch=compute_90", b"-rdc=true"]
-    assert nvrtc.nvrtcCompileProgram(prog, len(options), options)[0] == 0
-    size = nvrtc.nvrtcGetPTXSize(prog)[1]
-    helper = b" " * size
-    nvrtc.nvrtcGetPTX(prog, helper)
-    handle = nvjitlink.create(2, ["-arch=sm_90", "-Xptxas=-v"])
-    for name, data in (("kernel", ptx.encode()), ("reshape_funcs", helper)):
-        nvjitlink.add_data(handle, nvjitlink.InputType.PTX, data, len(data), name)
-    try:
-        nvjitlink.complete(handle)
-        rc = 0
-    except nvjitlink.nvJitLinkError:
-        rc = 1
-    log = bytearray(nvjitlink.get_info_log_size(handle))
-    nvjitlink.get_info_log(handle, log)
-    nvjitlink.destroy(handle)
-    return rc, log.decode(errors="replace")
-
-
-import nvidia.cuda_nvcc
-ptxas = os.path.join(list(nvidia.cuda_nvcc.__path__)[0], "bin", "ptxas")
-out = {}
-with tempfile.TemporaryDirectory() as tmp:
-    for name, args in cases.items():
-        ptx, _ = cuda.compile_ptx(getattr(kernels[name], name).py_func,
-                                  tuple(typeof(a) for a in args), cc=CC)
-        if "numba_attempt_nocopy_reshape" in ptx:
-            rc, log = link_with_reshape(ptx)
-        else:
-            path = os.path.join(tmp, name + ".ptx")
-            with open(path, "w") as f:
-                f.write(ptx)
-            asm = subprocess.run([ptxas, "-arch=sm_90", "-v", path, "-o", path + ".cubin"],
-                                 capture_output=True, text=True)
-            rc, log = asm.returncode, asm.stderr
-        out[name] = {
-            "atomics": sorted({w for w in ptx.split() if w.startswith("atom.")}),
-            "ptxas_rc": rc,
-            "ptxas": [l for l in log.splitlines() if "registers" in l or "rror" in l
-                      or "spill" in l],
-        }
-print("RESULT " + json.dumps(out))
-"""
-
 
 def require_numba_cuda() -> None:
     if importlib.util.find_spec("numba_cuda") is None:
@@ -422,23 +355,24 @@ def test_reordered_threads_match_cpu_to_rounding(simulated, key):
     assert case["events"][0] == case["events"][1] > 0
 
 
-def test_kernels_compile_for_a_gpu():
-    """Every kernel, the replay kernels of path recycling included, compiles to PTX (sm_90)
-    and assembles, with atomic float64 additions where it writes shared images or gradients
-    (``add_to``'s CUDA implementation). A kernel that reshapes an array is linked with
-    numba-cuda's reshape helper by nvJitLink, as numba-cuda links it at launch."""
-    require_numba_cuda()
-    if importlib.util.find_spec("nvidia.cuda_nvcc") is None:
-        pytest.fail("NVVM/ptxas not found: install numba-cuda[cu12] (the test extra)",
-                    pytrace=False)
-    result = run_script(PTX_SCRIPT, simulator=False)
-    for name, info in result.items():
-        assert info["ptxas_rc"] == 0, f"{name}: ptxas failed: {info['ptxas']}"
-    for name in ("forward_render_kernel", "forward_gradient_kernel", "backward_kernel",
-                 "camera_gradient_kernel", "replay_render_kernel", "replay_gradient_kernel"):
-        assert "atom.global.add.f64" in result[name]["atomics"], result[name]
-    assert "atom.global.add.f64" not in result["forward_residual_kernel"]["atomics"]
-    assert not result["log_ratio_kernel"]["atomics"]
+@pytest.mark.parametrize(
+    "key",
+    [f"orthographic-{what}/{scene}" for what in ("forward", "aimed", "backward", "score",
+                                                 "drt", "sm")
+     for scene in ("open", "periodic")],
+)
+def test_orthographic_cameras_match_cpu_to_rounding(simulated, key):
+    """Orthographic cameras (one beside a pinhole over the open box, one over the periodic
+    slab): renders (forward, aimed at the cameras, backward), the score-function gradient
+    of aimed paths and the DRT and sample-matching gradients on the CUDA back end, blocks
+    of 32 threads: the CPU's samples summed in another order, equal to float64 rounding,
+    with the same path vertices. (Path recycling with them: the replay tests below.)"""
+    case = simulated[key]
+    assert case["backend"] == "cuda"
+    assert case["scale"] > 0.0
+    np.testing.assert_allclose(np.array(case["gpu"]), np.array(case["cpu"]), rtol=1e-12,
+                               atol=1e-12 * case["scale"], err_msg=key)
+    assert case["events"][0] == case["events"][1] > 0
 
 
 def test_auto_backend_falls_back_to_cpu_with_a_warning():

@@ -362,6 +362,9 @@ def test_cli_render_and_retrieve_on_workers(client, tmp_path):
     save_medium(medium, tmp_path / "m.nc")
     scene.to_dataset().to_netcdf(tmp_path / "s.nc")
     address = client.scheduler.address
+    # a worker killed on purpose by an earlier test may still be restarting (slow on a
+    # loaded machine): the files record the workers connected at the call
+    client.wait_for_workers(2, timeout=300)
     common = ["render", str(tmp_path / "m.nc"), "--scene", str(tmp_path / "s.nc"),
               "--photons", "4000"]
     assert main([*common, "-o", str(tmp_path / "one.nc")]) == 0

@@ -32,7 +32,6 @@ from test_drt import (
     pixel_weights,
 )
 
-from cloudct.mc.cameras import Camera
 from cloudct.mc.gradient import (
     drt_gradient,
     gradient_estimate,
@@ -40,9 +39,7 @@ from cloudct.mc.gradient import (
 )
 from cloudct.mc.pixel_sampling import draw_pixel, pixel_table, residual_table
 from cloudct.mc.random import stream_start
-from cloudct.mc.render import single_cloud_medium
-from cloudct.mc.scene import Scene
-from cloudct.mc.sun import Sun
+from data_synth.single_cloud_piece import dense_core_piece, scene_of_dense_core
 
 BATCHES = 32
 ALL_VOXELS = CLOUD_VOXELS + AIR_VOXELS + EMPTY_VOXELS
@@ -80,21 +77,6 @@ def test_sample_matching_matches_finite_differences(finite_differences, probes, 
 # ----------------------------------------------------------------------------------------
 
 
-def les_piece():
-    """A 10 x 10 x 12 piece of the single cloud (its core and its cloud-free margin)."""
-    return single_cloud_medium().isel(x=slice(4, 14), y=slice(18, 28), z=slice(12, 24))
-
-
-def les_scene(medium):
-    x, y, z = (float(medium[a].mean()) for a in ("x", "y", "z"))
-    target = (x, y, z)
-    cams = [
-        Camera((x, y, z + 2.0), target, (0, 1, 0), fov=14.0, nrows=6, ncols=6),
-        Camera((x + 1.0, y, z + 1.7), target, (0, 0, 1), fov=14.0, nrows=6, ncols=6),
-    ]
-    return Scene(cams, Sun(zenith=20.0, azimuth=30.0), "open", None)
-
-
 def assert_same_mean(a, b, label, min_voxels):
     """Two estimates of the same gradient agree voxel by voxel where both have spread."""
     both = (a[1] > 0) & (b[1] > 0)
@@ -104,8 +86,8 @@ def assert_same_mean(a, b, label, min_voxels):
 
 
 def test_sample_matching_has_the_mean_of_drt_on_an_les_piece():
-    medium = les_piece()
-    scene = les_scene(medium)
+    medium = dense_core_piece()
+    scene = scene_of_dense_core(medium)
     residual = np.random.default_rng(4).uniform(0.5, 1.5, size=(2, 6, 6))
     sm = sample_matching_gradient(medium, scene, residual, samples_per_pixel=2048, seed=3,
                                   batches=BATCHES)

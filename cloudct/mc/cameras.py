@@ -14,6 +14,11 @@ view direction (CONVENTIONS.md). Two projections:
   source of intensity J [power/sr] in that direction adds J / a to its pixel, a the
   pixel's area [km^2] (docs/sensors.md).
 
+Both serve every estimator (forward and backward renders, the score-function, DRT and
+sample-matching gradients, path recycling) on both back ends, and space carving: the
+kernels see a camera only through :func:`project` and :func:`pixel_ray`, carving through
+their vectorised twins in :mod:`cloudct.retrieval.cloudy_pixels`.
+
 On the image plane at unit distance in front of the pinhole, a direction d (from the pinhole
 towards the scene) lands at u = d.right / d.forward, v = d.up / d.forward. A pixel's value is
 the average radiance over its area a on that plane. A point source of intensity J [power/sr]
@@ -131,18 +136,13 @@ class CameraArrays(NamedTuple):
     aim_fraction: float = 0.0
 
 
-def camera_arrays(
-    cameras: list[Camera], aim_fraction: float = 0.0, orthographic: bool = False
-) -> CameraArrays:
-    """Gather cameras into kernel arrays; all cameras must share the image size.
+def camera_arrays(cameras: list[Camera], aim_fraction: float = 0.0) -> CameraArrays:
+    """Gather cameras, pinhole or orthographic (both serve everything that takes
+    cameras), into kernel arrays; all cameras must share the image size.
     ``aim_fraction`` in [0, 1) is the forward estimator's detector directional importance
-    sampling (:mod:`cloudct.mc.detector_sampling`). ``orthographic``: whether the caller
-    handles orthographic cameras (rendering on the CPU); elsewhere (gradients, path
-    recycling, carving, CUDA) one is refused rather than treated as a pinhole."""
+    sampling (:mod:`cloudct.mc.detector_sampling`)."""
     if not cameras:
         raise ValueError("at least one camera is needed")
-    if not orthographic:
-        require_pinholes(cameras)
     shapes = {(c.nrows, c.ncols) for c in cameras}
     if len(shapes) != 1:
         raise ValueError(f"all cameras must have the same image size, got {sorted(shapes)}")
@@ -167,17 +167,6 @@ def camera_arrays(
         ncols=ncols,
         aim_fraction=float(aim_fraction),
     )
-
-
-def require_pinholes(cameras: list[Camera]) -> None:
-    """Refuse orthographic cameras where only pinholes are supported (yet)."""
-    for i, cam in enumerate(cameras):
-        if cam.projection != "pinhole":
-            raise ValueError(
-                f"camera {i} is {cam.projection}: only rendering on the CPU (render, "
-                "forward or backward) supports orthographic cameras yet, not gradients, "
-                "path recycling, carving or CUDA"
-            )
 
 
 @njit(cache=True, inline="always")

@@ -12,10 +12,15 @@ mixture density
     q(w) = (1 - a) f(v . w) + a / M  sum_{c sees x} f(d_c . w),
 
 f the voxel's mixture phase function (Eq. 5 of the seed paper), v the incoming direction,
-d_c the unit vector from x towards camera c's pinhole, M the number of cameras whose image
-holds x and ``a`` the aim fraction (``CameraArrays.aim_fraction``). The second term is the
-phase function turned to point at a camera: it is sampled exactly by the usual sampler about
-d_c instead of v. The path weight is multiplied by f(v . w) / q(w) <= 1 / (1 - a), so every
+d_c the unit vector from x towards camera c (:func:`~cloudct.mc.cameras.project`: towards
+a pinhole, or minus an orthographic camera's view direction, the one direction in which it
+sees every point), M the number of cameras whose image holds x and ``a`` the aim fraction
+(``CameraArrays.aim_fraction``). The second term is the phase function turned to point at
+a camera: it is sampled exactly by the usual sampler about d_c instead of v. It is a
+density over directions for either projection, never a delta: an orthographic camera sees
+only light along d_c, but the next event's local estimate, not this draw, makes that
+connection; the lobe only makes the directions that give it a large phase function
+likely. The path weight is multiplied by f(v . w) / q(w) <= 1 / (1 - a), so every
 estimate stays unbiased: a direction that now points at a camera often carries a small
 weight, and the next event's local estimate, f times that weight, is bounded by about
 f(v . w) M / a instead of the peak of f. Where no camera sees x, q = f and nothing changes.

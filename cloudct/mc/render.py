@@ -161,15 +161,8 @@ def render_batches(
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     check_sampling(photons, batches, rr_depth, rr_survival)
     check_cloud_share(entry_cloud_share)
-    orthographic = any(c.projection == "orthographic" for c in scene.cameras)
-    if orthographic and backend != "cpu":
-        raise ValueError(
-            f"orthographic cameras render on the CPU only (yet): use backend='cpu', not "
-            f"{backend!r}"
-        )
     forward = method == "forward"
     k = kernel_inputs(medium, scene, aim_fraction if forward else 0.0,
-                      orthographic=orthographic,
                       entry_cloud_share=entry_cloud_share if forward else 0.0)
     per_batch = math.ceil(int(photons) / batches)
     if executor is not None:
@@ -243,15 +236,14 @@ class KernelInputs(NamedTuple):
 
 def kernel_inputs(
     medium: xr.Dataset, scene: Scene, aim_fraction: float | None = None,
-    orthographic: bool = False, entry_cloud_share: float = 0.0,
+    entry_cloud_share: float = 0.0,
 ) -> KernelInputs:
     """Validate a medium and a scene and gather them into kernel arrays (``aim_fraction``:
     the forward estimator's detector directional importance sampling, see
     :mod:`cloudct.mc.detector_sampling`; 0 switches it off, None chooses it by the optics:
-    :func:`default_aim_fraction`). ``orthographic``: whether the caller supports
-    orthographic cameras (:func:`cloudct.mc.cameras.camera_arrays`).
-    ``entry_cloud_share``: the forward photons' share m in [0, 1) entering where the clouds
-    are (:func:`cloudct.mc.sun.sun_arrays`; 0: uniform entry)."""
+    :func:`default_aim_fraction`). ``entry_cloud_share``: the forward photons' share m in
+    [0, 1) entering where the clouds are (:func:`cloudct.mc.sun.sun_arrays`; 0: uniform
+    entry)."""
     grid, bank, edges = medium_arrays(medium)
     check_scene(scene, edges)
     if aim_fraction is None:
@@ -259,7 +251,7 @@ def kernel_inputs(
     return KernelInputs(
         grid=grid,
         bank=bank,
-        cams=camera_arrays(scene.cameras, aim_fraction, orthographic),
+        cams=camera_arrays(scene.cameras, aim_fraction),
         copies=periodic_copy_ranges(scene, edges),
         sun=sun_arrays(scene.sun, edges, scene.periodic, grid, entry_cloud_share),
         periodic=scene.periodic,

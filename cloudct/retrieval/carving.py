@@ -11,10 +11,10 @@ Seed paper Sec. 6.1.1: the retrieval starts from the space-carved hull of the cl
    cloudy when its radiance exceeds its clear-sky background by more than the larger of a
    fraction of the view's cloud signal and a multiple of the pixel's noise standard
    deviation (or a given threshold).
-3. **Votes.** A voxel is projected onto each view with the cameras' pinhole model
-   (:func:`~cloudct.retrieval.cloudy_pixels.project_points`, the vectorised twin of
-   :func:`cloudct.mc.cameras.project`) at the centres of its sub-cells (``subsamples``
-   per axis).
+3. **Votes.** A voxel is projected onto each view with the camera's projection, pinhole
+   or orthographic (:func:`~cloudct.retrieval.cloudy_pixels.project_points`, the
+   vectorised twin of :func:`cloudct.mc.cameras.project`) at the centres of its sub-cells
+   (``subsamples`` per axis).
    View v votes for the voxel when one of those points falls on a cloudy pixel, or when
    one falls outside the image or on a masked (NaN) pixel: a view cannot carve away what
    it does not see. With periodic boundaries a view sees every periodic copy of the voxel
@@ -65,6 +65,7 @@ from cloudct.retrieval.cloudy_pixels import (
     cell_index,
     cloud_masks,
     medium_bounds,
+    pixel_ray_origins,
     pixel_rays,
     project_points,
     ray_box,
@@ -324,12 +325,12 @@ def _silhouette(
     step = 0.25 * min(float(np.diff(e).min()) for e in edges)
     out = np.zeros((cams.position.shape[0], cams.nrows, cams.ncols), dtype=np.int8)
     for v in range(out.shape[0]):
-        origin = cams.position[v]
+        origins = pixel_ray_origins(cams, v)[:, :, 0]
         rays = pixel_rays(cams, v)[:, :, 0]
-        t_in, t_out = ray_box(origin, rays, lo, hi)
+        t_in, t_out = ray_box(origins, rays, lo, hi)
         hit = np.zeros(t_in.shape, dtype=bool)
         for live, t, _ in ray_steps(t_in, t_out, step):
-            point = origin + t[:, None] * rays[live]
+            point = origins[live] + t[:, None] * rays[live]
             index = tuple(index_along[a](e, point[:, a]) for a, e in enumerate(edges))
             hit[live] |= hull[index]
         out[v] = hit

@@ -1,7 +1,7 @@
 """Which pixels see cloud: each pixel's clear-sky background and the cloudy-pixel rule of
-space carving (:mod:`cloudct.retrieval.carving`, steps 1 and 2), with the pinhole
-projection, the pixel rays and the periodic copies of the box that they share with the
-carving's votes."""
+space carving (:mod:`cloudct.retrieval.carving`, steps 1 and 2), with the cameras'
+projection (pinhole or orthographic), the pixel rays and the periodic copies of the box
+that they share with the carving's votes."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from collections.abc import Iterator
 import numpy as np
 import xarray as xr
 
-from cloudct.mc.cameras import CameraArrays, camera_arrays
+from cloudct.mc.cameras import ORTHOGRAPHIC, PINHOLE, CameraArrays, camera_arrays
 from cloudct.mc.scene import Scene, check_scene, periodic_copy_ranges
 from cloudct.medium import (
     cell_edges,
@@ -34,13 +34,16 @@ def project_points(
     cams: CameraArrays, view: int, points: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pixels (row, col) of camera ``view`` seeing ``points`` (..., 3) [km]; -1 where a
-    point is behind the camera or outside the image. The vectorised twin of
-    :func:`cloudct.mc.cameras.project` (the same pinhole model and pixel edges)."""
+    point is behind the camera (its image plane) or outside the image. The vectorised twin
+    of :func:`cloudct.mc.cameras.project` (the same pinhole and orthographic models and
+    pixel edges)."""
     d = points - cams.position[view]
     depth = d @ cams.forward[view]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = (d @ cams.right[view]) / depth
-        v = (d @ cams.up[view]) / depth
+    u = d @ cams.right[view]
+    v = d @ cams.up[view]
+    if cams.projection[view] == PINHOLE:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = u / depth, v / depth
     hw, hh = cams.half_width[view], cams.half_height[view]
     inside = (depth > 0.0) & (-hw <= u) & (u < hw) & (-hh < v) & (v <= hh)
     col = np.minimum(np.floor((u + hw) / (2.0 * hw) * cams.ncols), cams.ncols - 1)
@@ -48,31 +51,51 @@ def project_points(
     return np.where(inside, row, -1).astype(np.int64), np.where(inside, col, -1).astype(np.int64)
 
 
-def pixel_rays(cams: CameraArrays, view: int, subpixels: int = 1) -> np.ndarray:
-    """Unit directions from the pinhole of ``view`` through the centres of the
-    ``subpixels`` x ``subpixels`` sub-pixels of every pixel, (nrows, ncols, subpixels^2, 3)
-    (the same image plane as :func:`cloudct.mc.cameras.pixel_ray`)."""
+def _subpixel_centres(
+    cams: CameraArrays, view: int, subpixels: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Image-plane coordinates (u, v) along ``right`` and ``up`` (pinhole: on the plane at
+    unit distance; orthographic: on the image rectangle, km) of the centres of the
+    ``subpixels`` x ``subpixels`` sub-pixels of every pixel, each (nrows, ncols,
+    subpixels^2, 1); sub-pixel a * subpixels + b lies in sub-row a and sub-column b."""
     hw, hh = cams.half_width[view], cams.half_height[view]
-    offsets = (np.arange(subpixels) + 0.5) / subpixels
-    u = -hw + (np.arange(cams.ncols)[:, None] + offsets).ravel() * (2.0 * hw / cams.ncols)
-    v = hh - (np.arange(cams.nrows)[:, None] + offsets).ravel() * (2.0 * hh / cams.nrows)
-    rays = (
-        cams.forward[view]
-        + u[None, :, None] * cams.right[view]
-        + v[:, None, None] * cams.up[view]
-    )
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-    # (nrows * s, ncols * s, 3) -> (nrows, ncols, s * s, 3)
     s = subpixels
-    rays = rays.reshape(cams.nrows, s, cams.ncols, s, 3).transpose(0, 2, 1, 3, 4)
-    return rays.reshape(cams.nrows, cams.ncols, s * s, 3)
+    offsets = (np.arange(s) + 0.5) / s
+    u = -hw + (np.arange(cams.ncols)[:, None] + offsets) * (2.0 * hw / cams.ncols)
+    v = hh - (np.arange(cams.nrows)[:, None] + offsets) * (2.0 * hh / cams.nrows)
+    shape = (cams.nrows, cams.ncols, s, s)
+    u = np.broadcast_to(u[None, :, None, :], shape).reshape(cams.nrows, cams.ncols, s * s, 1)
+    v = np.broadcast_to(v[:, None, :, None], shape).reshape(cams.nrows, cams.ncols, s * s, 1)
+    return u, v
+
+
+def pixel_rays(cams: CameraArrays, view: int, subpixels: int = 1) -> np.ndarray:
+    """Unit directions of the rays of ``view`` through the centres of the ``subpixels`` x
+    ``subpixels`` sub-pixels of every pixel, (nrows, ncols, subpixels^2, 3): from the
+    pinhole, or the view direction of an orthographic camera (the rays of
+    :func:`cloudct.mc.cameras.pixel_ray`; they start at :func:`pixel_ray_origins`)."""
+    u, v = _subpixel_centres(cams, view, subpixels)
+    if cams.projection[view] == ORTHOGRAPHIC:
+        return np.broadcast_to(cams.forward[view], (*u.shape[:-1], 3)).copy()
+    rays = cams.forward[view] + u * cams.right[view] + v * cams.up[view]
+    return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+
+
+def pixel_ray_origins(cams: CameraArrays, view: int, subpixels: int = 1) -> np.ndarray:
+    """Where the rays of :func:`pixel_rays` start, (nrows, ncols, subpixels^2, 3) [km]: the
+    pinhole, or the sub-pixel centres on an orthographic camera's image rectangle."""
+    u, v = _subpixel_centres(cams, view, subpixels)
+    if cams.projection[view] == ORTHOGRAPHIC:
+        return cams.position[view] + u * cams.right[view] + v * cams.up[view]
+    return np.broadcast_to(cams.position[view], (*u.shape[:-1], 3)).copy()
 
 
 def ray_box(
     origin: np.ndarray, rays: np.ndarray, lo: np.ndarray, hi: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Distances (t_in, t_out) along ``rays`` (..., 3) from ``origin`` through the box
-    [lo, hi] (slab method; infinite bounds allowed). t_in >= t_out where a ray misses."""
+    """Distances (t_in, t_out) along ``rays`` (..., 3) from ``origin`` (one point, or one
+    per ray) through the box [lo, hi] (slab method; infinite bounds allowed). t_in >= t_out
+    where a ray misses."""
     # a ray parallel to a pair of faces gets +-inf there (inside the slab for every t, or
     # never), or NaN (0/0) when it runs in a face plane: counted as inside
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -179,15 +202,15 @@ def clear_sky_background(
     cams = camera_arrays(scene.cameras)
     out = np.zeros((len(scene.cameras), cams.nrows, cams.ncols))
     for v in range(out.shape[0]):
-        origin = cams.position[v]
+        origins = pixel_ray_origins(cams, v, subpixels)
         rays = pixel_rays(cams, v, subpixels)
-        t_in, t_out = ray_box(origin, rays, lo, hi)
+        t_in, t_out = ray_box(origins, rays, lo, hi)
         mu = -(rays @ sun)  # cos(scattering angle): sun's rays vs. direction to the camera
         phase = 3.0 / (16.0 * np.pi) * (1.0 + mu * mu)
         radiance = np.zeros(t_in.shape)
         tau_view = np.zeros(t_in.shape)
         for live, t, length in ray_steps(t_in, t_out, step):
-            z = origin[2] + t * rays[live][:, 2]
+            z = origins[live][:, 2] + t * rays[live][:, 2]
             b = beta[cell_index(z_edges, z)]
             radiance[live] += (
                 b * length * np.exp(-(tau_view[live] + 0.5 * b * length)) * sun_transmittance(z)
@@ -196,7 +219,8 @@ def clear_sky_background(
         radiance *= albedo * phase
         if scene.ground_albedo is not None:
             ground = (t_in < t_out) & (
-                np.abs(origin[2] + t_out * rays[..., 2] - z_edges[0]) <= 1e-9 + 1e-9 * t_out
+                np.abs(origins[..., 2] + t_out * rays[..., 2] - z_edges[0])
+                <= 1e-9 + 1e-9 * t_out
             )
             radiance += np.where(
                 ground,
@@ -246,7 +270,8 @@ def cloud_masks(
     mask = np.zeros(radiance.shape, dtype=bool)
     for v in range(radiance.shape[0]):
         if threshold is None:
-            t_in, t_out = ray_box(cams.position[v], pixel_rays(cams, v)[:, :, 0], lo, hi)
+            t_in, t_out = ray_box(pixel_ray_origins(cams, v)[:, :, 0],
+                                  pixel_rays(cams, v)[:, :, 0], lo, hi)
             seen = excess[v][(t_in < t_out) & np.isfinite(excess[v])]
             if seen.size:
                 signal[v] = SIGNAL_FRACTION * max(np.percentile(seen, SIGNAL_PERCENTILE), 0.0)
