@@ -17,11 +17,15 @@ of 8 batches (the group means are closer to normal if a few batches carry heavy 
 two must agree for the error bars to be trusted.
 
 DRT and sample matching (the defaults: linear, one probe, free-flight share) on the same
-pixel weights, each with its batch standard error; z = (estimate - FD) / sqrt(se_est^2 +
-se_FD^2) per hole and step. Usage::
+pixel weights, ``--runs`` independent runs each, averaged, with their batch standard errors;
+z = (estimate - FD) / sqrt(se_est^2 + se_FD^2) per hole and step. The runs also compare
+the two estimators over whole classes of voxels (cloud, cloud-free, holes): the class's
+summed gradient with its standard error over the runs, and the mean of the per-voxel z of
+SM - DRT for every pairing of runs beside the same between two runs of one estimator as
+controls (:func:`pooled_comparison`). Usage::
 
     python -m benchmarks gradients.holes [--holes 4] [--steps 2 4 8] \
-        [--fd-samples 65536] [--batches 128] [--gradient-samples 65536] \
+        [--fd-samples 65536] [--batches 128] [--gradient-samples 131072] [--runs 4] \
         [--output benchmarks/results/gradient_holes]
 """
 
@@ -85,12 +89,17 @@ def main() -> None:
     parser.add_argument("--fd-samples", type=int, default=65536,
                         help="backward samples per pixel of every finite-difference render")
     parser.add_argument("--batches", type=int, default=128)
-    parser.add_argument("--gradient-samples", type=int, default=65536,
-                        help="DRT and sample-matching samples per pixel")
+    parser.add_argument("--gradient-samples", type=int, default=131072,
+                        help="DRT and sample-matching samples per pixel of each run")
+    parser.add_argument("--runs", type=int, default=4,
+                        help="independent runs of each estimator (at least 2: the pooled "
+                        "comparison's controls compare runs of one estimator)")
     parser.add_argument("--output", default=str(RESULTS / "gradient_holes"))
     args = parser.parse_args()
     if args.batches % GROUP:
         parser.error(f"--batches must be a multiple of {GROUP}")
+    if args.runs < 2:
+        parser.error("--runs must be at least 2")
 
     medium = dense_core_piece()
     scene = scene_of_dense_core(medium)
@@ -115,13 +124,15 @@ def main() -> None:
                           for h in args.steps), flush=True)
     fd_seconds = time.perf_counter() - start
 
-    estimates = {}
+    estimates, runs = {}, {}
     for name, estimator, seed in (("DRT", drt_gradient, 5),
                                   ("sample matching", sample_matching_gradient, 6)):
         start = time.perf_counter()
-        mean, error, _ = estimator(medium, scene, weights,
-                                samples_per_pixel=args.gradient_samples, seed=seed,
-                                batches=GRADIENT_BATCHES)
+        runs[name] = [estimator(medium, scene, weights, samples_per_pixel=args.gradient_samples,
+                                seed=seed + 10 * r, batches=GRADIENT_BATCHES)[:2]
+                      for r in range(args.runs)]
+        mean = sum(m for m, _ in runs[name]) / args.runs
+        error = np.sqrt(sum(e**2 for _, e in runs[name])) / args.runs
         estimates[name] = {"seconds": time.perf_counter() - start,
                            "holes": {str(v): [float(mean[v]), float(error[v])] for v in holes}}
         print(f"{name}: {estimates[name]['seconds']:.0f} s", flush=True)
@@ -141,8 +152,47 @@ def main() -> None:
     result = {**run_header(args), "holes": [list(v) for v in holes],
               "cloud_neighbours": {str(v): face_neighbours(medium["cloud_extinction"].values, v)
                                    for v in holes},
-              "fd_seconds": fd_seconds, "estimators": estimates, "rows": rows}
+              "fd_seconds": fd_seconds, "estimators": estimates, "rows": rows,
+              "pooled": pooled_comparison(medium["cloud_extinction"].values, runs)}
     write_result(result, args.output, markdown)
+
+
+def pooled_comparison(cloud: np.ndarray, runs: dict) -> list[dict]:
+    """Sample matching against DRT over classes of voxels: the mean over the class of the
+    per-voxel z = (SM - DRT) / sqrt(se_SM^2 + se_DRT^2), for every pairing of an SM run
+    with a DRT run, and as controls the same between two runs of one estimator (which
+    must be about 0: the runs' z are correlated across voxels, so the spread of the
+    controls, not 1 / sqrt(voxels), says how far from 0 a mean z may wander)."""
+    cloudy = np.zeros(cloud.shape, int)
+    padded = np.pad(cloud > 0, 1)
+    for axis in range(3):
+        for shift in (1, -1):
+            cloudy += np.roll(padded, shift, axis)[1:-1, 1:-1, 1:-1]
+    classes = {"cloud": cloud > 0, "cloud-free": cloud == 0,
+               "cloud-free, 3 or more cloudy neighbours": (cloud == 0) & (cloudy >= 3)}
+
+    def mean_z(a, b, mask):
+        both = mask & (a[1] > 0) & (b[1] > 0)
+        return float(((a[0] - b[0]) / np.hypot(a[1], b[1]))[both].mean())
+
+    drt, sm = runs["DRT"], runs["sample matching"]
+    out = []
+    for label, mask in classes.items():
+        sums = {name: np.array([m[mask].sum() for m, _ in r]) for name, r in
+                (("DRT", drt), ("SM", sm))}
+        out.append({
+            "voxels": label, "count": int(mask.sum()),
+            # the class's summed gradient, mean and standard error over the runs: an
+            # unbiased comparison even where skewed estimates make the mean z drift
+            "sum DRT": [float(sums["DRT"].mean()),
+                        float(sums["DRT"].std(ddof=1) / math.sqrt(len(drt)))],
+            "sum SM": [float(sums["SM"].mean()),
+                       float(sums["SM"].std(ddof=1) / math.sqrt(len(sm)))],
+            "SM - DRT": [mean_z(a, b, mask) for a in sm for b in drt],
+            "DRT - DRT": [mean_z(a, b, mask) for i, a in enumerate(drt) for b in drt[i + 1:]],
+            "SM - SM": [mean_z(a, b, mask) for i, a in enumerate(sm) for b in sm[i + 1:]],
+        })
+    return out
 
 
 def markdown(result: dict) -> str:
@@ -152,7 +202,17 @@ def markdown(result: dict) -> str:
              f"{r['DRT']:.4g} +- {r['DRT se']:.2g}", f"{r['DRT z']:+.2f}",
              f"{r['sample matching']:.4g} +- {r['sample matching se']:.2g}",
              f"{r['sample matching z']:+.2f}"] for r in result["rows"]]
-    return "\n".join(markdown_table(header, rows)) + "\n"
+    pooled = [[p["voxels"], str(p["count"]),
+               *(f"{p[k][0]:.4g} +- {p[k][1]:.2g}" for k in ("sum DRT", "sum SM")),
+               *(", ".join(f"{z:+.3f}" for z in p[k]) for k in ("SM - DRT", "DRT - DRT",
+                                                                "SM - SM"))]
+              for p in result["pooled"]]
+    return "\n".join([
+        *markdown_table(header, rows), "",
+        "Classes of voxels: the summed gradient (mean and standard error over the runs), "
+        "and the mean per-voxel z for every pairing of runs:", "",
+        *markdown_table(["voxels", "count", "sum DRT", "sum SM", "mean z SM - DRT",
+                         "controls: DRT - DRT", "SM - SM"], pooled)]) + "\n"
 
 
 if __name__ == "__main__":

@@ -32,14 +32,16 @@ import xarray as xr
 
 from cloudct.mc.backend import resolve_backend
 from cloudct.mc.camera_gradient import DRT, SAMPLE_MATCHING
+from cloudct.mc.cameras import PROJECTIONS
 from cloudct.mc.executor import BatchExecutor, check_executor
 from cloudct.mc.forward import GRADIENT
-from cloudct.mc.pixel_sampling import pixel_table
+from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS, pixel_table
 from cloudct.mc.render import check_residual, check_sampling, kernel_inputs, run_in_rounds
 from cloudct.mc.runners import camera_gradient_runner, forward_runner
 from cloudct.mc.scene import Scene
 from cloudct.mc.sun import check_cloud_share
 from cloudct.mc.traversal import require_exponential, require_smooth_flight_density
+from cloudct.physics.transmittance import FAMILIES
 
 #: Sample matching's probes per segment by default (measured: docs/validation.md).
 SAMPLE_MATCHING_PROBES = 1
@@ -269,6 +271,9 @@ class GradientEstimator:
     replayable: bool
     transmittances: tuple[str, ...]
     run: Callable[..., tuple[np.ndarray, np.ndarray, dict]]
+    #: the back ends (:mod:`cloudct.mc.backend`) and camera projections it runs on
+    backends: tuple[str, ...] = ("cpu", "cuda")
+    projections: tuple[str, ...] = PROJECTIONS
 
 
 def _score_run(medium, scene, residual, *, paths, seed, batches, pixel_sampling, progress,
@@ -313,6 +318,32 @@ ESTIMATORS: dict[str, GradientEstimator] = {
                           run=_camera_side_run(sample_matching_gradient)),
     )
 }
+
+
+def support_table() -> str:
+    """What each gradient estimator of :data:`ESTIMATORS` supports, as the Markdown table of
+    ``docs/architecture.md`` (a test keeps the page equal to it); where a cell says
+    "refused", the call stops before any work with the reason and the alternative."""
+
+    def family(record: GradientEstimator, name: str) -> str:
+        return "yes" if name in record.transmittances else "refused"
+
+    header = ["estimator", "traces", "back ends", "executors", "cameras", "pixels drawn",
+              *(f"transmittance: {f}" for f in FAMILIES), "path recycling"]
+    lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
+    for r in ESTIMATORS.values():
+        cells = [
+            f"`{r.name}`: {r.title}",
+            "camera paths" if r.camera_side else "forward photons",
+            ", ".join(r.backends),
+            "this process, Dask (any BatchExecutor)",
+            ", ".join(r.projections),
+            ", ".join(PIXEL_SAMPLINGS) if r.camera_side else "(each photon serves every pixel)",
+            *(family(r, f) for f in FAMILIES),
+            "recorded and replayed" if r.replayable else "refused (fresh paths each iteration)",
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def gradient_estimator(name: str) -> GradientEstimator:
