@@ -470,7 +470,8 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cli_report)
 
     d = subparsers.add_parser(
-        "demo", help="the whole chain on a bundled cloud (the single cloud: a few minutes)",
+        "demo", help="the whole chain on a bundled cloud (the single cloud: about 10 minutes on "
+        "2 CPU cores)",
         description="Synthesise measurements of a bundled cloud (noise-free, sun at the "
         "zenith, the nine cameras of the scene's preset of cloudct scene, open boundaries), "
         "carve, retrieve and report. --scene single-cloud (the default) is the seed paper's "
