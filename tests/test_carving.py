@@ -117,6 +117,19 @@ def test_clear_sky_background_matches_an_air_render(blob, boundary, ground, phot
     np.testing.assert_allclose(model, measured, rtol=0.05)
 
 
+def hull_against(carved, truth: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """The carved hull, the share of the true cloud's voxels it misses, and its
+    intersection over union with the true cloud."""
+    hull = carved.hull.values.astype(bool)
+    return (hull, np.sum(truth & ~hull) / truth.sum(),
+            np.sum(truth & hull) / np.sum(truth | hull))
+
+
+def cloudy_and_silhouette(carved) -> tuple[np.ndarray, np.ndarray]:
+    """The cloudy-pixel masks and the hull's silhouettes, per view."""
+    return carved.cloud_mask.values.astype(bool), carved.hull_silhouette.values.astype(bool)
+
+
 def test_carving_recovers_the_blob(blob, blob_measurements):
     """Every blob voxel is in the hull (no false negatives beyond 3 % at the edge) and the
     hull is not much larger than the blob (IoU > 0.6; the nine views lie within 29 degrees
@@ -124,9 +137,7 @@ def test_carving_recovers_the_blob(blob, blob_measurements):
     truth = blob.cloud_extinction.values > 0
     carved = carve(blob_measurements, blob, fit_photons=None)
     assert carved.attrs["k"] == default_k(9) == 8
-    hull = carved.hull.values.astype(bool)
-    missed = np.sum(truth & ~hull) / truth.sum()
-    iou = np.sum(truth & hull) / np.sum(truth | hull)
+    hull, missed, iou = hull_against(carved, truth)
     print(f"blob {truth.sum()} voxels, hull {hull.sum()}, missed {missed:.3f}, IoU {iou:.3f}")
     assert missed <= 0.03
     assert iou > 0.6
@@ -134,8 +145,7 @@ def test_carving_recovers_the_blob(blob, blob_measurements):
     strict = carve(blob_measurements, blob, k=9, fit_photons=None).hull.values.astype(bool)
     assert np.all(hull[strict]) and strict.sum() <= hull.sum()
     # the hull's silhouettes cover the cloudy pixels
-    cloudy = carved.cloud_mask.values.astype(bool)
-    silhouette = carved.hull_silhouette.values.astype(bool)
+    cloudy, silhouette = cloudy_and_silhouette(carved)
     assert np.sum(cloudy & silhouette) >= 0.95 * cloudy.sum() > 0
 
 
@@ -149,11 +159,8 @@ def test_carving_with_orthographic_cameras_recovers_the_blob(blob):
     measured = synthesize_measurements(blob, scene, photons=200_000, seed=1, progress=False)
     truth = blob.cloud_extinction.values > 0
     carved = carve(measured, blob, fit_photons=20_000)
-    hull = carved.hull.values.astype(bool)
-    missed = np.sum(truth & ~hull) / truth.sum()
-    iou = np.sum(truth & hull) / np.sum(truth | hull)
-    cloudy = carved.cloud_mask.values.astype(bool)
-    silhouette = carved.hull_silhouette.values.astype(bool)
+    hull, missed, iou = hull_against(carved, truth)
+    cloudy, silhouette = cloudy_and_silhouette(carved)
     images = render(initial_medium(carved, blob), scene, photons=40_000, seed=7,
                     progress=False)
     ratio = images.radiance.values.sum() / measured.radiance.values.sum()
@@ -188,11 +195,8 @@ def test_periodic_carving_recovers_a_blob_across_the_side_faces(wrapped_blob, mo
                                        progress=False)
     truth = wrapped_blob.cloud_extinction.values > 0
     carved = carve(measured, wrapped_blob, fit_photons=20_000)
-    hull = carved.hull.values.astype(bool)
-    missed = np.sum(truth & ~hull) / truth.sum()
-    iou = np.sum(truth & hull) / np.sum(truth | hull)
-    cloudy = carved.cloud_mask.values.astype(bool)
-    silhouette = carved.hull_silhouette.values.astype(bool)
+    hull, missed, iou = hull_against(carved, truth)
+    cloudy, silhouette = cloudy_and_silhouette(carved)
     profile = carved.extinction_profile.values
     clear, inside = profile[hull & ~truth].mean(), profile[hull & truth].mean()
     print(f"periodic: blob {truth.sum()} voxels, hull {hull.sum()}, missed {missed:.3f}, "
