@@ -12,7 +12,7 @@ import pytest
 from test_cuda_sim import SCENES, require_numba_cuda, run_script
 
 PTX_SCRIPT = SCENES + """
-import json, os, subprocess, tempfile
+import json, os, re, subprocess, tempfile
 from types import SimpleNamespace
 import numba.cuda.dispatcher as dispatcher
 from numba import cuda
@@ -62,35 +62,7 @@ kernels.update(dict.fromkeys(["replay_render_kernel", "replay_gradient_kernel",
                               "log_ratio_kernel"], cr))
 
 
-def link_with_reshape(ptx):
-    # array.reshape in a kernel calls numba_attempt_nocopy_reshape, which numba-cuda links
-    # from its reshape_funcs.cu at launch (compiled by NVRTC); do the same with nvJitLink
-    import numba_cuda
-    from cuda.bindings import nvjitlink, nvrtc
-
-    path = os.path.join(os.path.dirname(numba_cuda.__file__), "numba", "cuda",
-                        "reshape_funcs.cu")
-    with open(path, "rb") as f:
-        _, prog = nvrtc.nvrtcCreateProgram(f.read(), b"reshape_funcs.cu", 0, [], [])
-    options = [b"-arch=compute_90", b"-rdc=true"]
-    assert nvrtc.nvrtcCompileProgram(prog, len(options), options)[0] == 0
-    size = nvrtc.nvrtcGetPTXSize(prog)[1]
-    helper = b" " * size
-    nvrtc.nvrtcGetPTX(prog, helper)
-    handle = nvjitlink.create(2, ["-arch=sm_90", "-Xptxas=-v"])
-    for name, data in (("kernel", ptx.encode()), ("reshape_funcs", helper)):
-        nvjitlink.add_data(handle, nvjitlink.InputType.PTX, data, len(data), name)
-    try:
-        nvjitlink.complete(handle)
-        rc = 0
-    except nvjitlink.nvJitLinkError:
-        rc = 1
-    log = bytearray(nvjitlink.get_info_log_size(handle))
-    nvjitlink.get_info_log(handle, log)
-    nvjitlink.destroy(handle)
-    return rc, log.decode(errors="replace")
-
-
+EXTERN_FUNCTION = r"\\.extern\\s+\\.func\\s+(?:\\([^)]*\\)\\s*)?(\\w+)"
 import nvidia.cuda_nvcc
 ptxas = os.path.join(list(nvidia.cuda_nvcc.__path__)[0], "bin", "ptxas")
 out = {}
@@ -98,16 +70,17 @@ with tempfile.TemporaryDirectory() as tmp:
     for name, args in cases.items():
         ptx, _ = cuda.compile_ptx(getattr(kernels[name], name).py_func,
                                   tuple(typeof(a) for a in args), cc=CC)
-        if "numba_attempt_nocopy_reshape" in ptx:
-            rc, log = link_with_reshape(ptx)
-        else:
-            path = os.path.join(tmp, name + ".ptx")
-            with open(path, "w") as f:
-                f.write(ptx)
-            asm = subprocess.run([ptxas, "-arch=sm_90", "-v", path, "-o", path + ".cubin"],
-                                 capture_output=True, text=True)
-            rc, log = asm.returncode, asm.stderr
+        path = os.path.join(tmp, name + ".ptx")
+        with open(path, "w") as f:
+            f.write(ptx)
+        asm = subprocess.run([ptxas, "-arch=sm_90", "-v", path, "-o", path + ".cubin"],
+                             capture_output=True, text=True)
+        rc, log = asm.returncode, asm.stderr
         out[name] = {
+            # functions declared but not defined: numba-cuda would link a helper for them
+            # (e.g. numba_attempt_nocopy_reshape for array.reshape), and cannot cache such a
+            # kernel on disk ("Cannot pickle CUDACodeLibrary with linking files")
+            "extern_functions": re.findall(EXTERN_FUNCTION, ptx),
             "atomics": sorted({w for w in ptx.split() if w.startswith("atom.")}),
             "ptxas_rc": rc,
             "ptxas": [l for l in log.splitlines() if "registers" in l or "rror" in l
@@ -120,14 +93,19 @@ print("RESULT " + json.dumps(out))
 def test_kernels_compile_for_a_gpu():
     """Every kernel, the replay kernels of path recycling included, compiles to PTX (sm_90)
     and assembles, with atomic float64 additions where it writes shared images or gradients
-    (``add_to``'s CUDA implementation). A kernel that reshapes an array is linked with
-    numba-cuda's reshape helper by nvJitLink, as numba-cuda links it at launch."""
+    (``add_to``'s CUDA implementation), and calls no function that numba-cuda would link at
+    launch: a kernel with linked files cannot be cached on disk (found on an H100,
+    2026-11-26: the recycled gradient's reshape made every replay fail to save)."""
     require_numba_cuda()
     if importlib.util.find_spec("nvidia.cuda_nvcc") is None:
         pytest.fail("NVVM/ptxas not found: install numba-cuda[cu12] (the test extra)",
                     pytrace=False)
     result = run_script(PTX_SCRIPT, simulator=False, timeout=1800.0)
     for name, info in result.items():
+        assert not info["extern_functions"], (
+            f"{name} calls {info['extern_functions']}, which numba-cuda links at launch: such a "
+            "kernel cannot be cached on disk (use index arithmetic, e.g. add_to_voxel, not "
+            "array.reshape)")
         assert info["ptxas_rc"] == 0, f"{name}: ptxas failed: {info['ptxas']}"
     for name in ("forward_render_kernel", "forward_gradient_kernel", "backward_kernel",
                  "camera_gradient_kernel", "replay_render_kernel", "replay_gradient_kernel"):

@@ -1,7 +1,8 @@
 """The GPU as the retrieval's engine (issue 34): a warm start, and each gradient's paths per
 second on the GPU against the CPU, on the seed paper's single cloud.
 
-Prepared to run in one short call on a GPU machine (it has not run on one yet):
+Prepared to run in one short call on a GPU machine (first run on an H100 on 2026-11-26:
+``benchmarks/results/gpu_engine.md``):
 
 1. **Warm start.** ``cloudct retrieve`` of the single cloud (measurements and carved start
    made first, on the GPU) run twice in new processes with an empty kernel cache
@@ -21,7 +22,9 @@ Usage::
         [--output benchmarks/results/gpu_engine]
 
 Without a GPU, ``--backend cpu`` runs both parts on the CPU alone (the warm start with
-100,000 paths; ``--cpu-threads`` applies to part 2 only).
+100,000 paths; ``--cpu-threads`` applies to part 2 only); ``--backend cuda`` runs them on
+the GPU alone; ``--no-warm-start`` skips part 1. The result file is written after each
+part, so that a run stopped by a time limit keeps what it measured.
 """
 
 from __future__ import annotations
@@ -54,9 +57,8 @@ def warm_start(work: Path, backend: str, photons: int) -> dict:
     setup = [["synth", "-o", str(meas), "--photons", "20000000", "--backend", backend,
               "--overwrite"],
              ["carve", str(meas), "-o", str(init), "--backend", backend, "--overwrite"]]
-    for argv in setup:  # with a cache of their own: the retrievals start from an empty one
-        subprocess.run([*CLOUDCT, *argv], check=True,
-                       env=dict(env, CLOUDCT_CACHE_DIR=str(cache / "setup")))
+    for argv in setup:  # with the caller's cache: only the retrievals start from an empty one
+        subprocess.run([*CLOUDCT, *argv], check=True)
     runs = []
     for attempt in ("compiling", "cached"):
         out = work / f"warm_{attempt}.nc"
@@ -87,19 +89,23 @@ def paths_per_second(backend: str, paths: int) -> dict:
     residual = np.random.default_rng(1).normal(size=shape)
     out = {}
     for name, sampling in ESTIMATORS:
-        def run(n: int, name=name, sampling=sampling) -> float:
+        def run(n: int, name=name, sampling=sampling) -> tuple[float, int]:
+            """Seconds and paths traced (the camera-side estimators' uniform pixel sampling
+            rounds each pixel's samples up to a multiple of the batches)."""
             start = time.perf_counter()
             if name == "render":
-                render(medium, scene, photons=n, backend=backend, progress=False)
+                traced = render(medium, scene, photons=n, backend=backend,
+                                progress=False).attrs["photons"]
             else:
-                gradient_estimate(medium, scene, residual, estimator=name, paths=n,
-                                  pixel_sampling=sampling, backend=backend)
-            return time.perf_counter() - start
+                traced = gradient_estimate(medium, scene, residual, estimator=name, paths=n,
+                                           pixel_sampling=sampling, backend=backend)[2]["photons"]
+            return time.perf_counter() - start, int(traced)
 
         run(64 * int(np.prod(shape)) if name in ("drt", "sm") else 64)  # compile or load
-        seconds = run(paths)
+        seconds, traced = run(paths)
         key = name if sampling in (None, "uniform") else f"{name}_{sampling}"
-        out[key] = {"paths": paths, "seconds": seconds, "paths_per_s": paths / seconds}
+        out[key] = {"paths": paths, "paths_traced": traced, "seconds": seconds,
+                    "paths_per_s": traced / seconds}
     out["score_renders_per_photon"] = out["score"]["seconds"] / out["render"]["seconds"]
     return out
 
@@ -134,19 +140,26 @@ def main() -> None:
     parser.add_argument("--paths", type=int, default=2_000_000)
     parser.add_argument("--cpu-paths", type=int, default=200_000)
     parser.add_argument("--cpu-threads", type=int, default=2)
-    parser.add_argument("--backend", choices=("both", "cpu"), default="both")
+    parser.add_argument("--backend", choices=("both", "cuda", "cpu"), default="both")
+    parser.add_argument("--no-warm-start", action="store_true",
+                        help="part 2 only (paths per second)")
     parser.add_argument("--work", type=Path, default=WORK / "gpu_engine")
     parser.add_argument("--output", default=str(RESULTS / "gpu_engine"))
     args = parser.parse_args()
     result = run_header(args)
     args.work.mkdir(parents=True, exist_ok=True)
-    if args.backend == "both":
+    if args.backend != "cpu":
         from cloudct.mc.backend import device_description, resolve_backend
 
         result["device"] = device_description(resolve_backend("cuda"))
-        result["warm_start"] = warm_start(args.work, "cuda", 1_000_000)
         result["cuda"] = paths_per_second("cuda", args.paths)
-    else:
+        write_result(result, args.output, markdown)
+        if not args.no_warm_start:
+            result["warm_start"] = warm_start(args.work, "cuda", 1_000_000)
+            write_result(result, args.output, markdown)
+        if args.backend == "cuda":
+            return
+    elif not args.no_warm_start:
         result["warm_start"] = warm_start(args.work, "cpu", 100_000)
     import numba
 

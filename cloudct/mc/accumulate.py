@@ -39,6 +39,18 @@ def _add(array, i, j, k, value):
 _add_to_cpu = njit(cache=True)(_add)
 
 
+@njit(cache=True)
+def add_to_voxel(gradient, voxel, value):
+    """gradient[ix, iy, iz] += value (:func:`add_to`) for the flat C-order index ``voxel`` of a
+    (x, y, z) array.
+
+    Index arithmetic, not a flat view: ``reshape`` inside a CUDA kernel makes numba-cuda link
+    its reshape helper, and numba-cuda cannot cache a kernel with linked files on disk.
+    """
+    ny, nz = gradient.shape[1], gradient.shape[2]
+    add_to(gradient, voxel // (ny * nz), (voxel // nz) % ny, voxel % nz, value)
+
+
 @overload(add_to, target="cpu")
 def _add_to_cpu_overload(array, i, j, k, value):
     return _add
