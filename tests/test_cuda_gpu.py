@@ -250,6 +250,24 @@ def test_same_seed_gradients_of_orthographic_cameras_equal_the_cpus(estimator):
     assert_same_to_rounding(gpu[0], cpu[0], f"{estimator}, orthographic camera, same seed")
 
 
+def test_same_seed_fluxes_and_probes_equal_the_cpus():
+    """Domain-mean fluxes and radiance probes, same seed on both back ends: the same photons,
+    so the same shares and probe radiances, within 1e-4 relative (as the same-seed gradients:
+    atomic additions in another order, and NVVM's exp/log may end a rare path elsewhere)."""
+    from cloudct.mc.sensors import FLUX_SHARES, domain_means
+
+    medium, scene = medium_and_scene()
+    kw = dict(directions=[(20.0, 10.0), (140.0, 200.0)], sun=scene.sun, boundary="open",
+              ground_albedo=0.3, photons=400_000, batches=BATCHES, seed=3, progress=False)
+    cpu = domain_means(medium, backend="cpu", **kw)
+    gpu = domain_means(medium, backend="cuda", **kw)
+    assert gpu.attrs["backend"] == "cuda"
+    assert abs(gpu.attrs["events"] - cpu.attrs["events"]) <= 1e-4 * cpu.attrs["events"]
+    for name in ("radiance", *FLUX_SHARES):
+        np.testing.assert_allclose(gpu[name].values, cpu[name].values, rtol=1e-4,
+                                   atol=1e-9, err_msg=name)
+
+
 def test_a_second_process_loads_the_kernels_from_the_cache(tmp_path):
     """Issue 34's warm start: the kernels compiled by one process are loaded, not compiled,
     by the next (cloudct.jit_cache)."""

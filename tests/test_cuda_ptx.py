@@ -24,6 +24,7 @@ CC = (9, 0)
 assert hasattr(dispatcher, "get_current_device"), "numba-cuda internals changed"
 dispatcher.get_current_device = lambda: SimpleNamespace(compute_capability=CC)
 import cloudct.mc.cuda_kernels as ck
+from cloudct.mc.forward import NFLUX
 from cloudct.mc.pixel_sampling import residual_table
 from cloudct.mc.render import kernel_inputs
 
@@ -39,6 +40,8 @@ cases = {
                                 (residual, events, path_sum, vertices, d, d)),
     "forward_gradient_kernel": (scene, *scalars, 0, 2, (residual, gradients, path_sum,
                                                         vertices, d)),
+    "forward_sensor_kernel": (scene, *scalars, 0, 2, (images, events, np.zeros((4, 1, 1, NFLUX)),
+                                                      d)),
     "backward_kernel": (scene, *scalars, 0, 2, (images, events)),
     "camera_gradient_kernel": (scene, *scalars, 0, 2, 1, 2, False, True,
                                (residual, residual_table(residual + 1.0), gradients, events)),
@@ -104,7 +107,7 @@ def test_kernels_compile_for_a_gpu():
     for name, info in result.items():
         assert not info["extern_functions"], (
             f"{name} calls {info['extern_functions']}, which numba-cuda links at launch: such a "
-            "kernel cannot be cached on disk (use index arithmetic, e.g. add_to_voxel, not "
+            "kernel cannot be cached on disk (use index arithmetic, as add_along does, not "
             "array.reshape)")
         assert info["ptxas_rc"] == 0, f"{name}: ptxas failed: {info['ptxas']}"
     for name in ("forward_render_kernel", "forward_gradient_kernel", "backward_kernel",

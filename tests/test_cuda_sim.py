@@ -174,6 +174,23 @@ for name, scene in ortho_scenes.items():
         case["events"] = [runs[0][2]["events"], runs[1][2]["events"]]
         case["backend"] = runs[1][2]["backend"]
 
+# domain-mean fluxes and radiance probes: the render's photons with their flux tallies
+from cloudct.mc.sensors import FLUX_SHARES, domain_means
+from cloudct.mc.sun import Sun
+for tpb in (1, 32):
+    ck.THREADS_PER_BLOCK = tpb
+    for name, ground in (("open", 0.3), ("periodic", None)):
+        runs = [domain_means(medium, directions=[(20.0, 10.0), (140.0, 200.0)],
+                             sun=Sun(30.0, 20.0), boundary=name, ground_albedo=ground,
+                             photons=256, batches=4, progress=False, backend=b)
+                for b in ("cpu", "cuda")]
+        names = ["radiance", *FLUX_SHARES]
+        values = [np.concatenate([np.ravel(r[n].values) for v in names
+                                  for n in (v, v + "_std_error")]) for r in runs]
+        out[f"fluxes/{name}/tpb{tpb}"] = case = compare(values[0], values[1])
+        case["events"] = [runs[0].attrs["events"], runs[1].attrs["events"]]
+        case["backend"] = runs[1].attrs["backend"]
+
 # per photon: the RESIDUAL pass kernel against trace_photon called on the CPU
 k = kernel_inputs(medium, scenes["open"])
 nbatch, per_batch, first, count = 3, 40, 5, 30
@@ -373,6 +390,23 @@ def test_orthographic_cameras_match_cpu_to_rounding(simulated, key):
     np.testing.assert_allclose(np.array(case["gpu"]), np.array(case["cpu"]), rtol=1e-12,
                                atol=1e-12 * case["scale"], err_msg=key)
     assert case["events"][0] == case["events"][1] > 0
+
+
+@pytest.mark.parametrize("scene", ["open", "periodic"])
+def test_fluxes_and_probes_match_cpu(simulated, scene):
+    """Domain-mean fluxes and radiance probes (:func:`cloudct.mc.sensors.domain_means`) on
+    the CUDA back end: each share, each probe and their standard errors equal the CPU's
+    bitwise with one thread per block (the CPU's summation order), to float64 rounding in
+    blocks of 32 threads; the same path vertices."""
+    for tpb in (1, 32):
+        case = simulated[f"fluxes/{scene}/tpb{tpb}"]
+        assert case["backend"] == "cuda"
+        assert case["scale"] > 0.0
+        assert case["events"][0] == case["events"][1] > 0
+        if tpb == 1:
+            assert case["bitwise"], f"max difference {case['max_diff']:.3g}"
+        np.testing.assert_allclose(np.array(case["gpu"]), np.array(case["cpu"]), rtol=1e-12,
+                                   atol=1e-12 * case["scale"])
 
 
 def test_auto_backend_falls_back_to_cpu_with_a_warning():

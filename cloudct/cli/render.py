@@ -77,12 +77,11 @@ def _render_fluxes(args: argparse.Namespace, medium, scene, output: Path) -> int
     if args.method != "forward" or args.workers or args.scheduler:
         raise ValueError("--fluxes and --probe run the forward method in this process "
                          "(no --method backward, --workers or --scheduler)")
-    if args.backend == "cuda":
-        raise ValueError("--fluxes and --probe run on the CPU only (--backend cpu or auto)")
     means = domain_means(
         medium, directions=args.probe or [], sun=scene.sun, boundary=scene.boundary,
         ground_albedo=scene.ground_albedo, photons=args.photons, seed=args.seed,
-        batches=args.batches, aim_fraction=args.aim_fraction, progress=None, backend="cpu",
+        batches=args.batches, aim_fraction=args.aim_fraction, progress=None,
+        backend=args.backend,
     )
     save_netcdf(means, output, overwrite=args.overwrite)
     shares = ", ".join(f"{name} {float(means[name]):.4g} +- {float(means[name + '_std_error']):.2g}"

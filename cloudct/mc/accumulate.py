@@ -39,16 +39,31 @@ def _add(array, i, j, k, value):
 _add_to_cpu = njit(cache=True)(_add)
 
 
-@njit(cache=True)
-def add_to_voxel(gradient, voxel, value):
-    """gradient[ix, iy, iz] += value (:func:`add_to`) for the flat C-order index ``voxel`` of a
-    (x, y, z) array.
+def add_along(gradient, voxels, lengths, start, stop, weight):
+    """gradient[voxel] += weight x length for the crossings ``start .. stop - 1`` of a ray
+    (``voxels[c]``: flat C-order index into the (x, y, z) array ``gradient``, ``lengths[c]``
+    the length inside it), in order.
 
-    Index arithmetic, not a flat view: ``reshape`` inside a CUDA kernel makes numba-cuda link
-    its reshape helper, and numba-cuda cannot cache a kernel with linked files on disk.
+    Called from Python, the compiled CPU version runs. The CPU addresses a flat view of
+    ``gradient``; the CUDA version (:func:`register_cuda_implementation`) turns each index
+    into (x, y, z) by arithmetic instead, since ``reshape`` inside a CUDA kernel makes
+    numba-cuda link a helper, and numba-cuda cannot cache a kernel with linked files.
     """
-    ny, nz = gradient.shape[1], gradient.shape[2]
-    add_to(gradient, voxel // (ny * nz), (voxel // nz) % ny, voxel % nz, value)
+    _add_along_cpu(gradient, voxels, lengths, start, stop, weight)
+
+
+def _add_along_flat(gradient, voxels, lengths, start, stop, weight):
+    flat = gradient.reshape((1, 1, gradient.size))
+    for c in range(start, stop):
+        flat[0, 0, voxels[c]] += weight * lengths[c]
+
+
+_add_along_cpu = njit(cache=True)(_add_along_flat)
+
+
+@overload(add_along, target="cpu")
+def _add_along_cpu_overload(gradient, voxels, lengths, start, stop, weight):
+    return _add_along_flat
 
 
 @overload(add_to, target="cpu")
@@ -73,5 +88,16 @@ def register_cuda_implementation() -> None:
     @cuda_overload(add_to, target="cuda")
     def _add_to_cuda_overload(array, i, j, k, value):
         return _atomic_add
+
+    def _atomic_add_along(gradient, voxels, lengths, start, stop, weight):
+        ny, nz = gradient.shape[1], gradient.shape[2]
+        for c in range(start, stop):
+            v = voxels[c]
+            cuda.atomic.add(gradient, (v // (ny * nz), (v // nz) % ny, v % nz),
+                            weight * lengths[c])
+
+    @cuda_overload(add_along, target="cuda")
+    def _add_along_cuda_overload(gradient, voxels, lengths, start, stop, weight):
+        return _atomic_add_along
 
     _cuda_registered = True

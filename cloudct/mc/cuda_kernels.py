@@ -89,6 +89,27 @@ def forward_render_kernel(
 
 
 @cuda.jit(cache=True)
+def forward_sensor_kernel(
+    scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, out
+):
+    """RENDER with the flux tallies of :mod:`cloudct.mc.sensors` (the photons of
+    :func:`forward_render_kernel`): out = (images[nbatch, view, row, col], events[nbatch],
+    fluxes[nbatch, 1, 1, NFLUX], no_residual[1, 1, 1])."""
+    images, events, fluxes, unused = out
+    t = cuda.grid(1)
+    if t >= images.shape[0] * count:
+        return
+    b = t // count
+    index = b * per_batch + first + t % count
+    vertices, _ = trace_photon(
+        scene.grid, scene.bank, scene.cams, scene.copies, scene.sun, periodic, ground,
+        rr_depth, rr_survival, seed, index, RENDER, images[b], unused, unused, 0.0, None, 0,
+        None, fluxes[b],
+    )
+    cuda.atomic.add(events, b, vertices)
+
+
+@cuda.jit(cache=True)
 def forward_residual_kernel(
     scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, nbatch, out
 ):
@@ -318,19 +339,25 @@ class Launcher(ABC):
 class ForwardLauncher(Launcher):
     """The CUDA counterpart of :func:`cloudct.mc.forward.forward_batches`, same arguments:
     RENDER fills ``images``, GRADIENT ``gradients`` (RESIDUAL then GRADIENT pass for every
-    launch, the second in the order of :func:`sort_by_path_length` when ``sort_paths``)."""
+    launch, the second in the order of :func:`sort_by_path_length` when ``sort_paths``).
+    With a float64[nbatch, 1, 1, NFLUX] array ``fluxes`` (RENDER only), the photons also add
+    their flux tallies to it, as :func:`cloudct.mc.sensors.sensor_batches` does."""
 
     def __init__(
         self, k, rr_depth, rr_survival, seed, per_batch, mode, images, residual, gradients,
-        events, *, sort_paths: bool | None = None, threads_per_block: int | None = None,
+        events, *, fluxes: np.ndarray | None = None, sort_paths: bool | None = None,
+        threads_per_block: int | None = None,
     ):
         if mode not in (RENDER, GRADIENT):
             raise ValueError(f"mode must be RENDER or GRADIENT, got {mode}")
+        if fluxes is not None and mode != RENDER:
+            raise ValueError("flux tallies are made by RENDER launches only")
         self.scene = device_scene(k)
         self.scalars = (k.periodic, k.ground, rr_depth, rr_survival, seed, per_batch)
         self.per_batch = per_batch
         self.mode = mode
-        self.host = (images, gradients, events)
+        self.host = (images, gradients, events, fluxes)
+        self.fluxes = None if fluxes is None else device_zeros(fluxes.shape)
         self.sort_paths = SORT_PATHS if sort_paths is None else sort_paths
         self.tpb = threads_per_block or THREADS_PER_BLOCK
         self.nbatch = images.shape[0] if mode == RENDER else gradients.shape[0]
@@ -350,6 +377,11 @@ class ForwardLauncher(Launcher):
 
     def launch(self, first: int, count: int) -> None:
         n = self.nbatch * count
+        if self.mode == RENDER and self.fluxes is not None:
+            out = (self.images, self.events, self.fluxes, self.dummy)
+            launch_kernel(forward_sensor_kernel, n, self.tpb, self.scene, *self.scalars, first,
+                          count, out)
+            return
         if self.mode == RENDER:
             out = (self.images, self.events, self.dummy, self.dummy)
             launch_kernel(forward_render_kernel, n, self.tpb, self.scene, *self.scalars, first,
@@ -373,9 +405,11 @@ class ForwardLauncher(Launcher):
                       first, count, out)
 
     def finish(self) -> None:
-        images, gradients, events = self.host
+        images, gradients, events, fluxes = self.host
         if self.mode == RENDER:
             images += to_host(self.images)
+            if fluxes is not None:
+                fluxes += to_host(self.fluxes)
         else:
             gradients += to_host(self.gradients)
         events += to_host(self.events)

@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from cloudct.mc.accumulate import add_to, add_to_voxel
+from cloudct.mc.accumulate import add_along, add_to
 from cloudct.mc.cameras import project
 from cloudct.mc.detector_sampling import scatter_aimed
 from cloudct.mc.events import lambertian_bounce, russian_roulette
@@ -202,8 +202,7 @@ def local_estimate(
 def deposit_trail(trail, gradient, weight):
     """gradient[voxel] += weight x length for the crossings of a :class:`Trail`, in order
     (``gradient`` C-contiguous over (x, y, z), addressed by flat voxel index)."""
-    for c in range(trail.count[0]):
-        add_to_voxel(gradient, trail.voxel[c], weight * trail.length[c])
+    add_along(gradient, trail.voxel, trail.length, 0, trail.count[0], weight)
 
 
 @njit(cache=True)

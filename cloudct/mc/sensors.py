@@ -24,7 +24,9 @@ What a plane-parallel code or a satellite product reports, from one set of forwa
   estimate serves it unchanged; its variance has no 1 / r^2 of a near pinhole and does not
   depend on the domain's size.
 
-CPU only for now: ``backend`` other than ``"cpu"`` is refused.
+Both back ends: the CPU's :func:`sensor_batches`, or on a GPU the forward render kernel's
+sibling that tallies the fluxes too (:func:`cloudct.mc.cuda_kernels.forward_sensor_kernel`);
+the same photons either way.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ import numpy as np
 import xarray as xr
 from numba import njit, prange
 
+from cloudct.mc.backend import resolve_backend
 from cloudct.mc.cameras import DOMAIN, CameraArrays, travel_direction
 from cloudct.mc.forward import (
     FLUX_DIFFUSE,
@@ -140,7 +143,7 @@ def domain_means(
         As for :func:`cloudct.mc.render.render`; ``aim_fraction`` aims scattering
         directions at the probe directions.
     backend
-        ``"cpu"`` only (yet).
+        ``"cpu"``, ``"cuda"`` or ``"auto"`` (:mod:`cloudct.mc.backend`).
     entry_cloud_share
         The share m in [0, 1) of photons entering where the clouds are, as for
         :func:`cloudct.mc.render.render` (0: uniform entry). The shares stay those of the
@@ -155,9 +158,6 @@ def domain_means(
     conservation), each with a ``*_std_error`` over the independent batches, and
     ``incoming_power``.
     """
-    if backend != "cpu":
-        raise ValueError(f"domain-mean fluxes and probes run on the CPU only (yet): use "
-                         f"backend='cpu', not {backend!r}")
     if boundary not in BOUNDARIES:
         raise ValueError(f"boundary must be one of {BOUNDARIES}, got {boundary!r}")
     if ground_albedo is not None and not 0.0 <= ground_albedo <= 1.0:
@@ -186,13 +186,23 @@ def domain_means(
     images = np.zeros((batches, len(angles), 1, 1))
     fluxes = np.zeros((batches, 1, 1, NFLUX))
     events = np.zeros(batches, dtype=np.int64)
-    head = (k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, rr_depth,
-            rr_survival, seed, per_batch)
+    backend = resolve_backend(backend)
+    if backend == "cuda":
+        from cloudct.mc.cuda_kernels import ForwardLauncher
 
-    def run(first: int, last: int) -> None:
-        sensor_batches(*head, first, last, images, fluxes, events)
+        run = ForwardLauncher(k, rr_depth, rr_survival, seed, per_batch, RENDER, images,
+                              None, None, events, fluxes=fluxes)
+        max_rounds = run.max_rounds
+    else:
+        head = (k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, rr_depth,
+                rr_survival, seed, per_batch)
 
-    wall = run_in_rounds(run, per_batch, batches, progress, unit="photon", desc="fluxes")
+        def run(first: int, last: int) -> None:
+            sensor_batches(*head, first, last, images, fluxes, events)
+
+        max_rounds = 50
+    wall = run_in_rounds(run, per_batch, batches, progress, unit="photon", desc="fluxes",
+                         max_rounds=max_rounds)
     shares = fluxes[:, 0, 0, :] / (per_batch * k.sun.power)
     info = dict(photons=per_batch * batches, seed=seed, batches=batches,
                 events=int(events.sum()), wall_time=wall, rr_depth=rr_depth,

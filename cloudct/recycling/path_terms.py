@@ -35,7 +35,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from cloudct.mc.accumulate import add_to_voxel
+from cloudct.mc.accumulate import add_along
 from cloudct.mc.forward import SCATTER
 from cloudct.mc.traversal import INF, march
 from cloudct.physics.mixing import mixture_phase_function, total_extinction
@@ -106,15 +106,11 @@ def segment_optical_depth(grid, beta, S, k, use_crossings, periodic, gradient, w
     """
     if use_crossings:
         tau = 0.0
-        if gradient is None:
-            for c in range(S.crossing_start[k], S.crossing_start[k + 1]):
-                tau += beta[S.crossing_voxel[c]] * S.crossing_length[c]
-        else:
-            for c in range(S.crossing_start[k], S.crossing_start[k + 1]):
-                v = S.crossing_voxel[c]
-                length = S.crossing_length[c]
-                tau += beta[v] * length
-                add_to_voxel(gradient, v, weight * length)
+        for c in range(S.crossing_start[k], S.crossing_start[k + 1]):
+            tau += beta[S.crossing_voxel[c]] * S.crossing_length[c]
+        if gradient is not None:
+            add_along(gradient, S.crossing_voxel, S.crossing_length, S.crossing_start[k],
+                      S.crossing_start[k + 1], weight)
         return tau
     ny = grid.y_edges.size - 1
     nz = grid.z_edges.size - 1

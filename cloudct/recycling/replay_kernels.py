@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from cloudct.mc.accumulate import add_to, add_to_voxel
+from cloudct.mc.accumulate import add_along, add_to
 from cloudct.mc.forward import (
     CLOUD,
     ESCAPE,
@@ -73,8 +73,8 @@ def stored_local_estimate(
         value *= residual[view, row, col]
         weighted_sum += value
         if mode == GRADIENT and value != 0.0:
-            for q in range(S.connection_crossing_start[c], S.connection_crossing_start[c + 1]):
-                add_to_voxel(gradient, S.connection_voxel[q], -value * S.connection_length[q])
+            add_along(gradient, S.connection_voxel, S.connection_length,
+                      S.connection_crossing_start[c], S.connection_crossing_start[c + 1], -value)
             if event_albedo < 0.0:
                 add_to(
                     gradient, ix, iy, iz,
