@@ -69,6 +69,14 @@ class DeviceScene(NamedTuple):
 # --------------------------------------------------------------------------------------
 
 
+@njit(cache=True)
+def thread_photon(t, per_batch, first, count):
+    """Batch b and photon index of thread ``t`` of a forward launch that covers photons
+    ``first .. first + count - 1`` of every batch (the module docstring's thread map)."""
+    b = t // count
+    return b, b * per_batch + first + t % count
+
+
 @cuda.jit(cache=True)
 def forward_render_kernel(
     scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, out
@@ -79,8 +87,7 @@ def forward_render_kernel(
     t = cuda.grid(1)
     if t >= images.shape[0] * count:
         return
-    b = t // count
-    index = b * per_batch + first + t % count
+    b, index = thread_photon(t, per_batch, first, count)
     vertices, _ = trace_photon(
         scene.grid, scene.bank, scene.cams, scene.copies, scene.sun, periodic, ground,
         rr_depth, rr_survival, seed, index, RENDER, images[b], no_residual, no_gradient, 0.0,
@@ -99,8 +106,7 @@ def forward_sensor_kernel(
     t = cuda.grid(1)
     if t >= images.shape[0] * count:
         return
-    b = t // count
-    index = b * per_batch + first + t % count
+    b, index = thread_photon(t, per_batch, first, count)
     vertices, _ = trace_photon(
         scene.grid, scene.bank, scene.cams, scene.copies, scene.sun, periodic, ground,
         rr_depth, rr_survival, seed, index, RENDER, images[b], unused, unused, 0.0, None, 0,
@@ -120,8 +126,7 @@ def forward_residual_kernel(
     t = cuda.grid(1)
     if t >= nbatch * count:
         return
-    b = t // count
-    index = b * per_batch + first + t % count
+    b, index = thread_photon(t, per_batch, first, count)
     n, s = trace_photon(
         scene.grid, scene.bank, scene.cams, scene.copies, scene.sun, periodic, ground,
         rr_depth, rr_survival, seed, index, RESIDUAL, no_image, residual, no_gradient, 0.0,
@@ -377,15 +382,14 @@ class ForwardLauncher(Launcher):
 
     def launch(self, first: int, count: int) -> None:
         n = self.nbatch * count
-        if self.mode == RENDER and self.fluxes is not None:
-            out = (self.images, self.events, self.fluxes, self.dummy)
-            launch_kernel(forward_sensor_kernel, n, self.tpb, self.scene, *self.scalars, first,
-                          count, out)
-            return
         if self.mode == RENDER:
-            out = (self.images, self.events, self.dummy, self.dummy)
-            launch_kernel(forward_render_kernel, n, self.tpb, self.scene, *self.scalars, first,
-                          count, out)
+            if self.fluxes is None:
+                kernel, out = forward_render_kernel, (self.images, self.events, self.dummy,
+                                                      self.dummy)
+            else:
+                kernel, out = forward_sensor_kernel, (self.images, self.events, self.fluxes,
+                                                      self.dummy)
+            launch_kernel(kernel, n, self.tpb, self.scene, *self.scalars, first, count, out)
             return
         path_sum, vertices = self.path_sum, self.vertices
         out = (self.residual, self.events, path_sum, vertices, self.dummy, self.dummy)
