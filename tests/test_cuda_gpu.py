@@ -38,9 +38,10 @@ if importlib.util.find_spec("numba_cuda") is None:
 from numba import config, cuda  # noqa: E402
 
 from cloudct.mc.cameras import Camera, orthographic_camera  # noqa: E402
+from cloudct.mc.estimate import kernel_inputs  # noqa: E402
 from cloudct.mc.forward import RESIDUAL, trace_photon  # noqa: E402
 from cloudct.mc.gradient import gradient_estimate, score_function_gradient  # noqa: E402
-from cloudct.mc.render import kernel_inputs, render_batches  # noqa: E402
+from cloudct.mc.render import render_batches  # noqa: E402
 from cloudct.mc.scene import Scene  # noqa: E402
 from cloudct.mc.sun import Sun  # noqa: E402
 from cloudct.medium import optical_medium, with_transmittance  # noqa: E402
@@ -155,7 +156,7 @@ def test_gpu_camera_gradient_agrees_with_cpu(estimator, pixel_sampling):
     residual) on the GPU against the CPU, independent seeds."""
     medium, scene = medium_and_scene()
     residual = np.random.default_rng(2).normal(size=(2, 8, 8))
-    kw = dict(estimator=estimator, paths=128 * 2 * 8 * 8, batches=BATCHES,
+    kw = dict(estimator=estimator, photons=128 * 2 * 8 * 8, batches=BATCHES,
               pixel_sampling=pixel_sampling)
     cpu = gradient_estimate(medium, scene, residual, seed=1, backend="cpu", **kw)
     gpu = gradient_estimate(medium, scene, residual, seed=2, backend="cuda", **kw)
@@ -225,7 +226,7 @@ def test_same_seed_gradients_equal_the_cpus(estimator, pixel_sampling):
     medium, scene = medium_and_scene()
     residual = np.random.default_rng(2).normal(size=(2, 8, 8))
     paths = 400_000 if estimator == "score" else 64 * 2 * 8 * 8
-    kw = dict(estimator=estimator, paths=paths, batches=BATCHES, seed=3,
+    kw = dict(estimator=estimator, photons=paths, batches=BATCHES, seed=3,
               pixel_sampling=pixel_sampling)
     cpu = gradient_estimate(medium, scene, residual, backend="cpu", **kw)
     gpu = gradient_estimate(medium, scene, residual, backend="cuda", **kw)
@@ -243,7 +244,7 @@ def test_same_seed_gradients_of_orthographic_cameras_equal_the_cpus(estimator):
     scene = Scene([ortho, scene.cameras[0]], scene.sun, scene.boundary, scene.ground_albedo)
     residual = np.random.default_rng(2).normal(size=(2, 8, 8))
     paths = 400_000 if estimator == "score" else 64 * 2 * 8 * 8
-    kw = dict(estimator=estimator, paths=paths, batches=BATCHES, seed=3)
+    kw = dict(estimator=estimator, photons=paths, batches=BATCHES, seed=3)
     cpu = gradient_estimate(medium, scene, residual, backend="cpu", **kw)
     gpu = gradient_estimate(medium, scene, residual, backend="cuda", **kw)
     assert (cpu[2]["backend"], gpu[2]["backend"]) == ("cpu", "cuda")

@@ -26,7 +26,7 @@ dispatcher.get_current_device = lambda: SimpleNamespace(compute_capability=CC)
 import cloudct.mc.cuda_kernels as ck
 from cloudct.mc.forward import NFLUX
 from cloudct.mc.pixel_sampling import residual_table
-from cloudct.mc.render import kernel_inputs
+from cloudct.mc.estimate import kernel_inputs
 
 k = kernel_inputs(medium, scenes["open"])
 scene = ck.DeviceScene(k.grid, k.bank, k.cams, k.copies, k.sun)

@@ -96,7 +96,8 @@ from cloudct.mc.backend import resolve_backend
 from cloudct.mc.forward import RESIDUAL, trace_photon
 from cloudct.mc.backward import trace_pixel_sample
 from cloudct.mc.gradient import score_function_gradient
-from cloudct.mc.render import kernel_inputs, render_batches
+from cloudct.mc.render import render_batches
+from cloudct.mc.estimate import kernel_inputs
 
 out = {"auto": resolve_backend("auto")}
 residual = np.random.default_rng(2).normal(size=(2, 6, 6))

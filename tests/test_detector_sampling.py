@@ -31,9 +31,10 @@ from scipy import integrate
 
 from cloudct.mc.cameras import camera_arrays
 from cloudct.mc.detector_sampling import DEFAULT_AIM_FRACTION, scatter_aimed
+from cloudct.mc.estimate import kernel_inputs
 from cloudct.mc.gradient import score_function_gradient
 from cloudct.mc.random import stream_start
-from cloudct.mc.render import kernel_inputs, render, render_batches
+from cloudct.mc.render import render, render_batches
 from cloudct.optics import to_optical
 from cloudct.physics.mixing import mixture_phase_function
 from data_synth.single_cloud_piece import piece_microphysics, scene_of_piece

@@ -279,12 +279,13 @@ import numpy as np
 from numba import config
 assert config.ENABLE_CUDASIM
 import cloudct.mc.cuda_kernels as ck
-from cloudct.distributed.batches import (assemble, backward_task, camera_gradient_task,
-                                        forward_task)
+from cloudct.distributed.batches import assemble, batch_task
+from cloudct.mc.estimate import Sampling
 from cloudct.mc.forward import GRADIENT, RENDER
 from cloudct.mc.gradient import drt_gradient, score_function_gradient
 from cloudct.mc.pixel_sampling import pixel_table
-from cloudct.mc.render import kernel_inputs, render_batches
+from cloudct.mc.render import render_batches
+from cloudct.mc.estimate import kernel_inputs
 from test_score_gradient import gradient_medium, gradient_scene, pixel_weights
 
 ck.THREADS_PER_BLOCK = 1  # the simulator then adds in the CPU's order: bitwise
@@ -294,21 +295,22 @@ out = {}
 batches, per_batch = 6, 16
 ref, _ = render_batches(medium, scene, photons=batches * per_batch, batches=batches,
                         progress=False, backend="cpu")
-parts = [forward_task(k, "cuda", 100, 0.95, 0, per_batch, RENDER, None, s, n)
+on_gpu = Sampling(batches=batches, backend="cuda")
+parts = [batch_task("forward", k, on_gpu, per_batch, (RENDER, None), s, n)
          for s, n in ((0, 2), (2, 3), (5, 1))]
 values, _ = assemble(parts, batches)
 out["forward"] = bool(np.array_equal(values / per_batch, ref))
 out["backends"] = sorted({p.backend for p in parts})
 ref, _ = render_batches(medium, scene, photons=2 * batches, batches=batches, method="backward",
                         progress=False, backend="cpu")
-parts = [backward_task(k, "cuda", 100, 0.95, 0, 2, batches, s, 1) for s in (0, 1)]
+parts = [batch_task("backward", k, on_gpu, 2, (), s, 1) for s in (0, 1)]
 values, _ = assemble(parts, 2, axis=1)
 out["backward"] = bool(np.array_equal(values / 2, ref))
 w = pixel_weights()
 ck.SORT_PATHS = False
 mean = score_function_gradient(medium, scene, w, photons=batches * per_batch, batches=batches,
                                progress=False)[0]
-parts = [forward_task(k, "cuda", 100, 0.95, 0, per_batch, GRADIENT, w, s, 3) for s in (0, 3)]
+parts = [batch_task("forward", k, on_gpu, per_batch, (GRADIENT, w), s, 3) for s in (0, 3)]
 values, _ = assemble(parts, batches)
 out["gradient"] = float(np.abs((values / per_batch).mean(axis=0) - mean).max() /
                         np.abs(mean).max())
@@ -317,8 +319,8 @@ for sampling, per_batch in (("uniform", 2), ("residual", 2 * w.size)):  # 8 samp
     mean = drt_gradient(medium, scene, w, samples_per_pixel=8, batches=4,
                         pixel_sampling=sampling)[0]
     pixels = (w, pixel_table(w, sampling))
-    parts = [camera_gradient_task(k0, "cuda", 100, 0.95, 0, per_batch, 4, (0, 1, False, False),
-                                  pixels, s, n) for s, n in ((0, 1), (1, 3))]
+    parts = [batch_task("camera-gradient", k0, Sampling(batches=4, backend="cuda"), per_batch,
+                        (0, 1, False, False, *pixels), s, n) for s, n in ((0, 1), (1, 3))]
     values, _ = assemble(parts, 4)
     out[f"drt-{sampling}"] = bool(np.array_equal((values / per_batch).mean(axis=0), mean))
 print("RESULT " + json.dumps(out))

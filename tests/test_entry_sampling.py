@@ -27,8 +27,9 @@ from mcstats import assert_consistent
 from test_cuda_sim import COMPARE, require_numba_cuda, run_script
 
 from cloudct.mc.cameras import Camera
+from cloudct.mc.estimate import kernel_inputs
 from cloudct.mc.gradient import gradient_estimate, score_function_gradient
-from cloudct.mc.render import kernel_inputs, render, render_batches
+from cloudct.mc.render import render, render_batches
 from cloudct.mc.scene import Scene
 from cloudct.mc.sensors import domain_means
 from cloudct.mc.sun import FACE_TOP, FACE_XMAX, FACE_YMAX, Sun, sample_entry_point
@@ -154,7 +155,7 @@ def test_bad_shares_are_refused(share):
                        entry_cloud_share=share),
         lambda: score_function_gradient(medium, scene, residual, photons=64, progress=False,
                                         entry_cloud_share=share),
-        lambda: gradient_estimate(medium, scene, residual, estimator="drt", paths=64,
+        lambda: gradient_estimate(medium, scene, residual, estimator="drt", photons=64,
                                   entry_cloud_share=share),
         lambda: domain_means(medium, photons=64, progress=False, entry_cloud_share=share),
     ]

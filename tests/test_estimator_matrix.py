@@ -1,7 +1,10 @@
 """The matrix of what each gradient estimator supports (cloudct.mc.gradient.ESTIMATORS and
-its ``support_table``): the page that shows it is the registry's, and every cell is walked
-on a small medium, on the CPU and in this process: a supported combination gives a finite
-gradient that is not zero, a refused one stops with its reason and an alternative.
+its ``support_table``) and the batch kernels that trace them (cloudct.mc.estimate.
+BATCH_KERNELS): the pages that show them are the registries', and every cell is walked on
+a small medium, on the CPU and in this process: a supported combination gives a finite
+gradient that is not zero, a refused one stops with its reason and an alternative. Every
+estimator also runs through the executors' one entry point (``batch_sums`` by kernel name),
+bitwise as in this process.
 
 Agreement with references is tested per estimator elsewhere (test_drt.py,
 test_sample_matching.py, test_score_gradient.py, test_transmittance_gradient.py,
@@ -18,7 +21,9 @@ import numpy as np
 import pytest
 
 from cloudct.mc.cameras import PROJECTIONS, Camera, orthographic_camera
+from cloudct.mc.estimate import BATCH_KERNELS, BY_VIEWS, Sampling, batch_kernel_table
 from cloudct.mc.gradient import ESTIMATORS, gradient_estimate, support_table
+from cloudct.mc.render import render_batches
 from cloudct.mc.scene import Scene
 from cloudct.mc.sun import Sun
 from cloudct.medium import optical_medium, with_transmittance
@@ -30,15 +35,71 @@ PAGE = Path(__file__).resolve().parents[1] / "docs" / "architecture.md"
 MODES = {"exponential": None, "linear-mix": 0.5, "gamma": 2.0}
 
 
-def test_the_page_shows_the_registrys_table():
+@pytest.mark.parametrize("table", [support_table, batch_kernel_table])
+def test_the_page_shows_the_registrys_table(table):
+    name = table.__name__
     text = PAGE.read_text()
-    shown = re.search(r"<!-- support_table: begin -->\n(.*)<!-- support_table: end -->",
-                      text, re.S)
-    assert shown is not None, "docs/architecture.md lost its support_table markers"
-    assert shown.group(1) == support_table(), (
-        "docs/architecture.md's table differs from cloudct.mc.gradient.support_table(): "
-        "paste the function's output between the markers"
+    shown = re.search(rf"<!-- {name}: begin -->\n(.*)<!-- {name}: end -->", text, re.S)
+    assert shown is not None, f"docs/architecture.md lost its {name} markers"
+    assert shown.group(1) == table(), (
+        f"docs/architecture.md's table differs from {table.__module__}.{name}(): paste the "
+        "function's output between the markers"
     )
+
+
+class InProcessExecutor:
+    """The smallest BatchExecutor: its one entry point runs any batch kernel by name here,
+    through the runner of the kernel's record, in one call per batch range of two batches
+    (as a worker would, with the sample range shifted)."""
+
+    def __init__(self):
+        self.kernels = []
+
+    def batch_sums(self, kernel, k, args, *, per_batch, sampling, progress, desc):
+        from cloudct.distributed.batches import assemble, batch_task
+
+        self.kernels.append(kernel)
+        if BATCH_KERNELS[kernel].split(args) == BY_VIEWS:
+            nview = k.cams.position.shape[0]
+            parts = [batch_task(kernel, k, sampling, per_batch, args, v, 1)
+                     for v in range(nview)]
+            values, parts = assemble(parts, nview, axis=1)
+            events = np.sum([p.events for p in parts], axis=0)
+        else:
+            parts = [batch_task(kernel, k, sampling, per_batch, args, b, 2)
+                     for b in range(0, sampling.batches, 2)]
+            values, parts = assemble(parts, sampling.batches)
+            events = np.concatenate([p.events for p in parts])
+        return values, events, {"wall_time": 0.0, "backend": "cpu"}
+
+
+@pytest.mark.parametrize("estimator", ["render-forward", "render-backward", *ESTIMATORS])
+def test_one_executor_entry_point_serves_every_estimator_bitwise(estimator):
+    medium, scene, residual = small_case("pinhole")
+    ex = InProcessExecutor()
+    if estimator.startswith("render"):
+        run = dict(photons=512, seed=3, batches=4, method=estimator.split("-")[1],
+                   progress=False)
+        ref, _ = render_batches(medium, scene, **run)
+        out, info = render_batches(medium, scene, executor=ex, **run)
+    else:
+        run = dict(estimator=estimator, photons=1_024, seed=3, batches=4,
+                   pixel_sampling="residual" if estimator == "drt" else "uniform")
+        ref = gradient_estimate(medium, scene, residual, **run)[:2]
+        *out, info = gradient_estimate(medium, scene, residual, executor=ex, **run)
+    assert len(ex.kernels) == 1 and ex.kernels[0] in BATCH_KERNELS
+    assert np.array_equal(np.asarray(out), np.asarray(ref)) and info["events"] > 0
+
+
+def test_sampling_refuses_what_cannot_work():
+    assert Sampling().per_batch(65) == 3  # 32 batches: rounded up
+    for bad, match in (({"batches": 1}, "batches must be at least 2"),
+                       ({"rr_survival": 0.0}, "rr_survival"), ({"rr_depth": 0}, "rr_depth"),
+                       ({"backend": "gpu"}, "backend must be one of")):
+        with pytest.raises(ValueError, match=match):
+            Sampling(**bad)
+    with pytest.raises(ValueError, match="positive count"):
+        Sampling().per_batch(0)
 
 
 def small_case(projection: str):
@@ -63,7 +124,7 @@ def test_every_cell_runs_or_is_refused_with_its_reason(name, family, projection)
     if MODES[family] is not None:
         medium = with_transmittance(medium, family, MODES[family])
     assert projection in record.projections
-    run = dict(estimator=name, paths=2_000, seed=1, batches=4)
+    run = dict(estimator=name, photons=2_000, seed=1, batches=4)
     if family in record.transmittances:
         mean, error, info = gradient_estimate(medium, scene, residual, **run)
         assert np.isfinite(mean).all() and np.isfinite(error).all()

@@ -27,8 +27,9 @@ from test_score_gradient import gradient_medium, gradient_scene, pixel_weights
 
 from cloudct.mc.cameras import Camera
 from cloudct.mc.detector_sampling import DEFAULT_AIM_FRACTION
+from cloudct.mc.estimate import kernel_inputs
 from cloudct.mc.gradient import score_function_gradient
-from cloudct.mc.render import kernel_inputs, render_batches
+from cloudct.mc.render import render_batches
 from cloudct.mc.scene import Scene
 from cloudct.mc.sun import Sun
 from cloudct.mc.traversal import INF, march, new_trail

@@ -132,7 +132,7 @@ def test_sample_matching_is_linear_in_the_residual_and_checks_its_input():
 def test_gradient_estimate_chooses_the_estimator_by_name():
     medium, scene = drt_medium(), drt_scene()
     r = pixel_weights()
-    g, _, info = gradient_estimate(medium, scene, r, estimator="sm", paths=32 * 64, seed=2,
+    g, _, info = gradient_estimate(medium, scene, r, estimator="sm", photons=32 * 64, seed=2,
                                    batches=4)
     ref, _, _ = sample_matching_gradient(medium, scene, r, samples_per_pixel=64, seed=2,
                                          batches=4)
@@ -140,16 +140,16 @@ def test_gradient_estimate_chooses_the_estimator_by_name():
     assert info["estimator"] == "sm" and info["photons"] == 32 * 64
     # residual-drawn pixels: as many samples as asked for, to whole samples per pixel (4 of
     # each of the 32 pixels), not one sample of each pixel in each of the 32 batches
-    _, _, drawn = gradient_estimate(medium, scene, r, estimator="sm", paths=100, seed=2,
+    _, _, drawn = gradient_estimate(medium, scene, r, estimator="sm", photons=100, seed=2,
                                     batches=32, pixel_sampling="residual")
     assert np.count_nonzero(r) == 32 and drawn["photons"] == 4 * 32
     with pytest.raises(ValueError, match="estimator must be one of"):
-        gradient_estimate(medium, scene, r, estimator="mis", paths=64)
+        gradient_estimate(medium, scene, r, estimator="mis", photons=64)
     with pytest.raises(ValueError, match="camera-side"):
-        gradient_estimate(medium, scene, r, estimator="score", paths=64,
+        gradient_estimate(medium, scene, r, estimator="score", photons=64,
                           pixel_sampling="residual")
     with pytest.raises(TypeError, match="BatchExecutor"):
-        gradient_estimate(medium, scene, r, estimator="drt", paths=64, executor=object())
+        gradient_estimate(medium, scene, r, estimator="drt", photons=64, executor=object())
 
 
 # ----------------------------------------------------------------------------------------

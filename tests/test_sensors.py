@@ -39,11 +39,12 @@ from cloudct.mc.cameras import (
     project,
     travel_direction,
 )
-from cloudct.mc.forward import FLUX_GROUND, FLUX_MEDIUM, FLUX_SIDE, FLUX_TOP, NFLUX
+from cloudct.mc.estimate import kernel_inputs
+from cloudct.mc.forward import FLUX_GROUND, FLUX_MEDIUM, FLUX_SIDE, FLUX_TOP, NFLUX, sensor_batches
 from cloudct.mc.gradient import drt_gradient, sample_matching_gradient, score_function_gradient
-from cloudct.mc.render import kernel_inputs, render, render_batches
+from cloudct.mc.render import render, render_batches
 from cloudct.mc.scene import Scene
-from cloudct.mc.sensors import domain_means, sensor_batches
+from cloudct.mc.sensors import domain_means
 from cloudct.mc.sun import Sun
 from cloudct.medium import optical_medium, save_medium
 from cloudct.recycling import record_paths, replay_gradient, replay_images

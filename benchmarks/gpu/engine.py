@@ -97,7 +97,7 @@ def paths_per_second(backend: str, paths: int) -> dict:
                 traced = render(medium, scene, photons=n, backend=backend,
                                 progress=False).attrs["photons"]
             else:
-                traced = gradient_estimate(medium, scene, residual, estimator=name, paths=n,
+                traced = gradient_estimate(medium, scene, residual, estimator=name, photons=n,
                                            pixel_sampling=sampling, backend=backend)[2]["photons"]
             return time.perf_counter() - start, int(traced)
 

@@ -141,9 +141,9 @@ def run_case(size: str, photons: int, gradient: bool, store: bool, backend: str 
         # JIT warm-up: one pixel, since every drawn pixel gets a path per batch at least
         one_pixel = np.zeros_like(residual)
         one_pixel[0, 38, 38] = 1.0
-        gradient_estimate(medium, scene, one_pixel, paths=64, **kw)
+        gradient_estimate(medium, scene, one_pixel, photons=64, **kw)
         t = time.perf_counter()
-        _, _, sm = gradient_estimate(medium, scene, residual, paths=photons // 2, **kw)
+        _, _, sm = gradient_estimate(medium, scene, residual, photons=photons // 2, **kw)
         out["sm_gradient_s_per_path"] = (time.perf_counter() - t) / sm["photons"]
     if store:
         paths = max(photons // 10, 320)

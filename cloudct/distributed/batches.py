@@ -25,12 +25,12 @@ another order (equal to rounding only). It is split over batches, and a task tra
 batches one at a time, batch b as the only batch of a kernel call with ``batches *
 per_batch`` samples per batch and the sample range shifted by ``b * per_batch``: the indices
 ``p * batches * per_batch + b * per_batch + k`` and the order of additions (in the rounds
-of :func:`cloudct.mc.render.run_in_rounds`) are those of the whole run
-(:func:`camera_gradient_task`); such a task runs on one numba thread. With pixels drawn from
+of :func:`cloudct.mc.estimate.run_in_rounds`) are those of the whole run
+(:func:`batch_task`); such a task runs on one numba thread. With pixels drawn from
 the alias table (residual pixel sampling, the retrieval's default) the index is ``b *
 per_batch + k``, and a task traces its range of batches at once, as a forward task does.
 
-What moves: the kernel inputs (medium and cameras, :class:`~cloudct.mc.render.KernelInputs`)
+What moves: the kernel inputs (medium and cameras, :class:`~cloudct.mc.estimate.KernelInputs`)
 are scattered once per call to every worker (``client.scatter(..., broadcast=True)``) and
 re-used by every task of the call (a second call with the same medium re-uses them: the
 scatter is cached by content); the gradient's residual (with the camera-side gradients'
@@ -62,14 +62,18 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 
 from cloudct.distributed.cluster import DistributedError
-from cloudct.mc.backend import BACKENDS, resolve_backend
-from cloudct.mc.forward import GRADIENT, RENDER
-from cloudct.mc.render import run_in_rounds
-from cloudct.mc.runners import backward_runner, camera_gradient_runner, forward_runner
+from cloudct.mc.backend import resolve_backend
+from cloudct.mc.estimate import (
+    BATCH_KERNELS,
+    BY_BATCHES,
+    BY_VIEWS,
+    Sampling,
+    batch_runner,
+    run_in_rounds,
+)
 
 if TYPE_CHECKING:
     from cloudct.distributed.executor import DaskExecutor
-    from cloudct.mc.pixel_sampling import PixelTable
 
 #: Test-only fault injection: a callable run on the worker at the start of every task with
 #: the task's kind and first batch (tests set it on the workers to kill them mid-call).
@@ -128,13 +132,13 @@ def _where() -> str:
 
 def run_range(run, offset: int, per_batch: int, *, in_rounds: bool = False) -> None:
     """Run photons ``offset .. offset + per_batch - 1`` of every batch of a runner of
-    :mod:`cloudct.mc.runners` and leave the results in its host arrays.
+    :func:`cloudct.mc.estimate.batch_runner` and leave the results in its host arrays.
 
     The forward runners index photon k of their batch b as ``b * per_batch + k``, so running
     ``k`` over ``first_batch * per_batch + (0 .. per_batch - 1)`` on arrays of ``count``
     batches traces exactly batches ``first_batch .. first_batch + count - 1`` (with the same
     per-batch order of additions). ``in_rounds``: in the rounds of
-    :func:`cloudct.mc.render.run_in_rounds` over ``0 .. per_batch - 1``, as one process
+    :func:`cloudct.mc.estimate.run_in_rounds` over ``0 .. per_batch - 1``, as one process
     runs them (this matters to the order of additions of the kernels that loop over pixels
     outside their samples). The CUDA launchers copy their results to the host in the round
     that ends at their own ``per_batch``; in any other range that is done here.
@@ -153,29 +157,6 @@ def _fault(kind: str, start: int) -> None:
         FAULT_HOOK(kind, start)
 
 
-def forward_task(k, backend: str, rr_depth: int, rr_survival: float, seed: int,
-                 per_batch: int, mode: int, residual, start: int, count: int) -> BatchPart:
-    """Batches ``start .. start + count - 1`` of a forward render (``mode`` RENDER: images)
-    or score-function gradient (GRADIENT: per-voxel gradients), as per-batch sums."""
-    _fault("forward", start)
-    t0, c0 = time.perf_counter(), time.process_time()
-    backend = resolve_backend(backend)
-    events = np.zeros(count, dtype=np.int64)
-    if mode == RENDER:
-        values = np.zeros((count, k.cams.position.shape[0], k.cams.nrows, k.cams.ncols))
-        other = np.zeros((count, 1, 1, 1))
-        run = forward_runner(backend, k, rr_depth, rr_survival, seed, per_batch, RENDER,
-                             values, np.zeros((1, 1, 1)), other, events)
-    else:
-        values = np.zeros((count, *k.grid.extinction.shape[1:]))
-        other = np.zeros((count, 1, 1, 1))
-        run = forward_runner(backend, k, rr_depth, rr_survival, seed, per_batch, GRADIENT,
-                             other, residual, values, events)
-    run_range(run, start * per_batch, per_batch)
-    return BatchPart(start, count, values, events, backend, time.perf_counter() - t0,
-                     time.process_time() - c0, _where())
-
-
 def view_subset(k, start: int, count: int):
     """The kernel inputs of views ``start .. start + count - 1`` only."""
     cams = k.cams
@@ -187,60 +168,49 @@ def view_subset(k, start: int, count: int):
     return k._replace(cams=sub, copies=np.ascontiguousarray(k.copies[sl]))
 
 
-def backward_task(k, backend: str, rr_depth: int, rr_survival: float, seed: int,
-                  per_batch: int, batches: int, start: int, count: int) -> BatchPart:
-    """Views ``start .. start + count - 1`` of every batch of a backward render.
+def batch_task(kernel: str, k, sampling: Sampling, per_batch: int, args: tuple, start: int,
+               count: int) -> BatchPart:
+    """Items ``start .. start + count - 1`` of a call of the batch kernel ``kernel``
+    (:data:`cloudct.mc.estimate.BATCH_KERNELS`), as per-batch sums; the items are batches,
+    or views of every batch, as the kernel's ``split(args)`` says:
 
-    Backward sample k of pixel p in batch b is index ``(p * batches + b) * per_batch + k``;
-    with the views before ``start`` left out, the local pixel p' = p - start * npix, so the
-    sample range is shifted by ``start * npix * batches * per_batch``.
+    - :data:`~cloudct.mc.estimate.BY_BATCHES`: photon (or drawn sample) k of batch b has
+      index ``b * per_batch + k``, so the range is traced at once on arrays of ``count``
+      batches with the samples shifted by ``start * per_batch``.
+    - :data:`~cloudct.mc.estimate.BY_VIEWS` (backward renders): sample k of pixel p in batch
+      b is index ``(p * batches + b) * per_batch + k``; with the views before ``start`` left
+      out, the local pixel p' = p - start * npix, so the samples are shifted by ``start *
+      npix * batches * per_batch``.
+    - :data:`~cloudct.mc.estimate.EACH_BATCH` (camera-side gradients of every pixel): the
+      index ``(p * batches + b) * per_batch + k`` depends on the batch count, so each batch
+      b is traced alone, as the one batch of a kernel call with ``batches * per_batch``
+      samples per batch over samples ``b * per_batch + (0 .. per_batch - 1)`` (the index
+      ``p * batches * per_batch + b * per_batch + k`` of the whole run), in the rounds of
+      one process.
     """
-    _fault("backward", start)
+    _fault(kernel, start)
     t0, c0 = time.perf_counter(), time.process_time()
-    backend = resolve_backend(backend)
-    sub = view_subset(k, start, count)
-    values = np.zeros((batches, count, k.cams.nrows, k.cams.ncols))
-    events = np.zeros(batches, dtype=np.int64)
-    run = backward_runner(backend, sub, rr_depth, rr_survival, seed, per_batch, values, events)
-    offset = start * k.cams.nrows * k.cams.ncols * batches * per_batch
-    run_range(run, offset, per_batch)
-    return BatchPart(start, count, values, events, backend, time.perf_counter() - t0,
-                     time.process_time() - c0, _where())
-
-
-def camera_gradient_task(k, backend: str, rr_depth: int, rr_survival: float, seed: int,
-                         per_batch: int, batches: int, estimator_args: tuple,
-                         pixels: tuple[np.ndarray, PixelTable], start: int,
-                         count: int) -> BatchPart:
-    """Batches ``start .. start + count - 1`` of a DRT or sample-matching gradient
-    (``estimator_args`` of :func:`cloudct.mc.runners.camera_gradient_runner`;
-    ``pixels`` = (residual, alias table)), as per-batch sums.
-
-    With an alias table, sample k of batch b has index ``b * per_batch + k``: the range of
-    batches is traced at once with the samples shifted by ``start * per_batch``. Without
-    one (every pixel), sample k of pixel p in batch b has index ``(p * batches + b) *
-    per_batch + k``, which depends on the batch count: each batch b is then traced alone,
-    as the one batch of a kernel call with ``batches * per_batch`` samples per batch over
-    samples ``b * per_batch + (0 .. per_batch - 1)`` (the index ``p * batches * per_batch +
-    b * per_batch + k`` of the whole run), in the rounds of one process.
-    """
-    _fault("camera-gradient", start)
-    t0, c0 = time.perf_counter(), time.process_time()
-    backend = resolve_backend(backend)
-    residual, table = pixels
-    values = np.zeros((count, *k.grid.extinction.shape[1:]))
-    events = np.zeros(count, dtype=np.int64)
-    if table.pixel.size:
-        run = camera_gradient_runner(backend, k, rr_depth, rr_survival, seed, per_batch,
-                                     estimator_args, residual, table, values, events)
-        run_range(run, start * per_batch, per_batch)
+    record = BATCH_KERNELS[kernel]
+    backend = resolve_backend(sampling.backend)
+    split = record.split(args)
+    if split == BY_VIEWS:
+        sub = view_subset(k, start, count)
+        values = np.zeros((sampling.batches, *record.shape(sub, args)))
+        events = np.zeros(sampling.batches, dtype=np.int64)
+        run = batch_runner(kernel, backend, sub, sampling, per_batch, args, values, events)
+        run_range(run, start * k.cams.nrows * k.cams.ncols * sampling.batches * per_batch,
+                  per_batch)
     else:
-        for i in range(count):
-            run = camera_gradient_runner(
-                backend, k, rr_depth, rr_survival, seed, batches * per_batch, estimator_args,
-                residual, table, values[i:i + 1], events[i:i + 1],
-            )
-            run_range(run, (start + i) * per_batch, per_batch, in_rounds=True)
+        values = np.zeros((count, *record.shape(k, args)))
+        events = np.zeros(count, dtype=np.int64)
+        if split == BY_BATCHES:
+            run = batch_runner(kernel, backend, k, sampling, per_batch, args, values, events)
+            run_range(run, start * per_batch, per_batch)
+        else:
+            for i in range(count):
+                run = batch_runner(kernel, backend, k, sampling, sampling.batches * per_batch,
+                                   args, values[i:i + 1], events[i:i + 1])
+                run_range(run, (start + i) * per_batch, per_batch, in_rounds=True)
     return BatchPart(start, count, values, events, backend, time.perf_counter() - t0,
                      time.process_time() - c0, _where())
 
@@ -275,11 +245,6 @@ def _backends(parts: Sequence[BatchPart]) -> str:
     return ",".join(sorted({p.backend for p in parts}))
 
 
-def _check_backend(backend: str) -> None:
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-
-
 def run_tasks(
     ex: DaskExecutor, task, args: tuple, ranges: list[tuple[int, int]], *, total: int,
     axis: int, sent: int, started: float, work: int, unit: str, desc: str,
@@ -305,67 +270,33 @@ def run_tasks(
     return values, parts, stats
 
 
-def distributed_forward(
-    ex: DaskExecutor, k, *, mode: int, seed: int, per_batch: int, batches: int, rr_depth: int,
-    rr_survival: float, residual: np.ndarray | None = None, backend: str = "cpu",
-    progress: bool | None = False, desc: str = "render",
+def distributed_batch_sums(
+    ex: DaskExecutor, kernel: str, k, args: tuple, *, per_batch: int, sampling: Sampling,
+    progress: bool | None = False, desc: str = "",
 ) -> tuple[np.ndarray, np.ndarray, CallStats]:
-    """Per-batch sums of a forward render (RENDER: float64[batches, view, row, col]) or
-    score-function gradient (GRADIENT: float64[batches, x, y, z]) traced on the workers,
-    with the per-batch path vertices and the call's bookkeeping."""
-    _check_backend(backend)
+    """Per-batch sums of a call of the batch kernel ``kernel`` traced on the workers, one
+    range of batches (or of views, :func:`batch_task`) per task, with the per-batch path
+    vertices and the call's bookkeeping. The kernel inputs are scattered once to every
+    worker (cached by content for the next call), the kernel's ``args`` once per call."""
     started = time.perf_counter()
+    record = BATCH_KERNELS[kernel]
     k_future, sent = ex.share(k, cache=True)
-    residual_future = None
-    if mode == GRADIENT:
-        residual_future, more = ex.share(np.ascontiguousarray(residual))
-        sent += more
-    args = (k_future, backend, rr_depth, rr_survival, seed, per_batch, mode, residual_future)
+    args_future, more = ex.share(args)
+    task_args = (kernel, k_future, sampling, per_batch, args_future)
+    batches = sampling.batches
+    if record.split(args) == BY_VIEWS:
+        nview = k.cams.position.shape[0]
+        per = max(1, math.ceil(nview / (ex.tasks_per_worker * ex.workers)))
+        ranges = [(s, min(per, nview - s)) for s in range(0, nview, per)]
+        values, parts, stats = run_tasks(
+            ex, batch_task, task_args, ranges, total=nview, axis=1, sent=sent + more,
+            started=started, work=per_batch * batches, unit=record.unit, desc=desc,
+            progress=progress,
+        )
+        return values, np.sum([p.events for p in parts], axis=0), stats
     values, parts, stats = run_tasks(
-        ex, forward_task, args, ex.ranges(batches), total=batches, axis=0, sent=sent,
-        started=started, work=per_batch, unit="photon", desc=desc, progress=progress,
-    )
-    return values, np.concatenate([p.events for p in parts]), stats
-
-
-def distributed_backward(
-    ex: DaskExecutor, k, *, seed: int, per_batch: int, batches: int, rr_depth: int,
-    rr_survival: float, backend: str = "cpu", progress: bool | None = False,
-) -> tuple[np.ndarray, np.ndarray, CallStats]:
-    """Per-batch sums of a backward render, float64[batches, view, row, col], traced on the
-    workers one range of views per task, with the per-batch path vertices."""
-    _check_backend(backend)
-    started = time.perf_counter()
-    k_future, sent = ex.share(k, cache=True)
-    nview = k.cams.position.shape[0]
-    per = max(1, math.ceil(nview / (ex.tasks_per_worker * ex.workers)))
-    ranges = [(s, min(per, nview - s)) for s in range(0, nview, per)]
-    args = (k_future, backend, rr_depth, rr_survival, seed, per_batch, batches)
-    values, parts, stats = run_tasks(
-        ex, backward_task, args, ranges, total=nview, axis=1, sent=sent, started=started,
-        work=per_batch * batches, unit="sample/px", desc="backward", progress=progress,
-    )
-    return values, np.sum([p.events for p in parts], axis=0), stats
-
-
-def distributed_camera_gradient(
-    ex: DaskExecutor, k, residual: np.ndarray, table: PixelTable, *, estimator_args: tuple,
-    seed: int, per_batch: int, batches: int, rr_depth: int, rr_survival: float,
-    backend: str = "cpu", progress: bool | None = False, desc: str = "camera gradient",
-) -> tuple[np.ndarray, np.ndarray, CallStats]:
-    """Per-batch sums of a DRT or sample-matching gradient, float64[batches, x, y, z],
-    traced on the workers one range of batches per task (:func:`camera_gradient_task`),
-    with the per-batch path vertices and the call's bookkeeping. The residual and the
-    alias table are scattered once to every worker."""
-    _check_backend(backend)
-    started = time.perf_counter()
-    k_future, sent = ex.share(k, cache=True)
-    pixels_future, more = ex.share((np.ascontiguousarray(residual), table))
-    args = (k_future, backend, rr_depth, rr_survival, seed, per_batch, batches,
-            estimator_args, pixels_future)
-    values, parts, stats = run_tasks(
-        ex, camera_gradient_task, args, ex.ranges(batches), total=batches, axis=0,
-        sent=sent + more, started=started, work=per_batch, unit="sample", desc=desc,
+        ex, batch_task, task_args, ex.ranges(batches), total=batches, axis=0,
+        sent=sent + more, started=started, work=per_batch, unit=record.unit, desc=desc,
         progress=progress,
     )
     return values, np.concatenate([p.events for p in parts]), stats

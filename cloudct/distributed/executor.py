@@ -14,16 +14,12 @@ import numpy as np
 from cloudct.distributed.batches import (
     BatchPart,
     CallStats,
-    distributed_backward,
-    distributed_camera_gradient,
-    distributed_forward,
+    distributed_batch_sums,
     nbytes,
     stats_info,
 )
 from cloudct.distributed.cluster import DistributedError, _import_distributed
-from cloudct.mc.camera_gradient import DRT
-from cloudct.mc.forward import GRADIENT, RENDER
-from cloudct.mc.pixel_sampling import PixelTable
+from cloudct.mc.estimate import Sampling
 
 
 class DaskExecutor:
@@ -150,66 +146,20 @@ class DaskExecutor:
         """Release scattered data (the client stays open)."""
         self._cache.clear()
 
-    def render_batch_means(
-        self, k, *, method: str, seed: int, per_batch: int, batches: int, rr_depth: int,
-        rr_survival: float, backend: str, progress: bool | None,
-    ) -> tuple[np.ndarray, dict]:
-        """What :func:`cloudct.mc.render.render_batches` returns, traced on the workers: the
-        images of each batch and the run's attributes (plus the call's bookkeeping)."""
-        if method == "forward":
-            values, events, stats = distributed_forward(
-                self, k, mode=RENDER, seed=seed, per_batch=per_batch, batches=batches,
-                rr_depth=rr_depth, rr_survival=rr_survival, backend=backend, progress=progress,
-            )
-        else:
-            values, events, stats = distributed_backward(
-                self, k, seed=seed, per_batch=per_batch, batches=batches, rr_depth=rr_depth,
-                rr_survival=rr_survival, backend=backend, progress=progress,
-            )
-        info = dict(
-            method=method, photons=per_batch * batches, seed=seed, batches=batches,
-            events=int(events.sum()), wall_time=stats.wall_time, rr_depth=rr_depth,
-            rr_survival=rr_survival, aim_fraction=k.cams.aim_fraction, backend=stats.backend,
-            **stats_info(stats),
+    def batch_sums(
+        self, kernel: str, k, args: tuple, *, per_batch: int, sampling: Sampling,
+        progress: bool | None = False, desc: str = "",
+    ) -> tuple[np.ndarray, np.ndarray, dict]:
+        """What :func:`cloudct.mc.estimate.batch_means` adds up in one process, traced on
+        the workers (:class:`cloudct.mc.executor.BatchExecutor`): the per-batch sums of the
+        batch kernel ``kernel``, the per-batch path vertices and the call's ``info`` (wall
+        time, the back ends the workers ran, and the call's bookkeeping)."""
+        values, events, stats = distributed_batch_sums(
+            self, kernel, k, args, per_batch=per_batch, sampling=sampling, progress=progress,
+            desc=desc or kernel,
         )
-        return values / per_batch, info
-
-    def gradient_batch_means(
-        self, k, residual: np.ndarray, *, seed: int, per_batch: int, batches: int,
-        rr_depth: int, rr_survival: float, backend: str, progress: bool | None,
-    ) -> tuple[np.ndarray, dict]:
-        """The per-batch score-function gradients of
-        :func:`cloudct.mc.gradient.score_function_gradient`, traced on the workers, and its
-        ``info`` (plus the call's bookkeeping)."""
-        values, events, stats = distributed_forward(
-            self, k, mode=GRADIENT, seed=seed, per_batch=per_batch, batches=batches,
-            rr_depth=rr_depth, rr_survival=rr_survival, residual=residual, backend=backend,
-            progress=progress, desc="gradient",
-        )
-        info = {"photons": per_batch * batches, "events": int(events.sum()),
-                "wall_time": stats.wall_time, "backend": stats.backend,
-                "aim_fraction": k.cams.aim_fraction, **stats_info(stats)}
-        return values / per_batch, info
-
-    def camera_gradient_batch_means(
-        self, k, residual: np.ndarray, table: PixelTable, *, estimator_args: tuple, seed: int,
-        per_batch: int, batches: int, rr_depth: int, rr_survival: float, backend: str,
-        progress: bool | None,
-    ) -> tuple[np.ndarray, dict]:
-        """The per-batch DRT or sample-matching gradients of
-        :func:`cloudct.mc.gradient.drt_gradient` /
-        :func:`~cloudct.mc.gradient.sample_matching_gradient`, traced on the workers, and
-        the path vertices, wall time and back end of their ``info`` (plus the call's
-        bookkeeping)."""
-        values, events, stats = distributed_camera_gradient(
-            self, k, residual, table, estimator_args=estimator_args, seed=seed,
-            per_batch=per_batch, batches=batches, rr_depth=rr_depth, rr_survival=rr_survival,
-            backend=backend, progress=progress,
-            desc="DRT" if estimator_args[0] == DRT else "sample matching",
-        )
-        info = {"events": int(events.sum()), "wall_time": stats.wall_time,
-                "backend": stats.backend, **stats_info(stats)}
-        return values / per_batch, info
+        info = {"wall_time": stats.wall_time, "backend": stats.backend, **stats_info(stats)}
+        return values, events, info
 
 
 def _numba_threads() -> int:

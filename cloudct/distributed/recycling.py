@@ -37,7 +37,7 @@ import xarray as xr
 from cloudct.distributed.batches import nbytes
 from cloudct.distributed.cluster import DistributedError
 from cloudct.distributed.executor import executor
-from cloudct.mc.render import check_residual, kernel_inputs
+from cloudct.mc.estimate import check_residual, kernel_inputs
 from cloudct.mc.scene import Scene
 from cloudct.medium import cell_edges
 from cloudct.recycling.recycler import Evaluation, Recycler

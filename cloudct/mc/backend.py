@@ -4,8 +4,8 @@
 :mod:`cloudct.mc.cuda_kernels` (needs numba-cuda and a GPU, or the CUDA simulator);
 ``"auto"`` CUDA where a GPU is available, else the CPU with a one-line warning. Both run the
 same ``@njit`` per-photon routines with the same photon indexing and random streams.
-:mod:`cloudct.mc.runners` builds the runner of an estimator on the chosen back end; this
-module imports no estimator.
+:data:`cloudct.mc.estimate.BATCH_KERNELS` builds the runner of a batch kernel on the chosen
+back end; this module imports no estimator.
 """
 
 from __future__ import annotations

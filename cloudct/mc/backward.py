@@ -112,7 +112,7 @@ def trace_pixel_sample(
 @njit(parallel=True, cache=True)
 def backward_batches(
     grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
-    samples_per_batch, first, last, images, events,
+    per_batch, first, last, images, events,
 ):
     """Samples ``first .. last - 1`` of every pixel in every batch, parallel over batches.
 
@@ -127,7 +127,7 @@ def backward_batches(
                 for col in range(ncols):
                     pixel = (view * nrows + row) * ncols + col
                     for k in range(first, last):
-                        index = (pixel * nbatch + b) * samples_per_batch + k
+                        index = (pixel * nbatch + b) * per_batch + k
                         value, vertices = trace_pixel_sample(
                             grid, bank, cams, sun, periodic, ground_albedo, rr_depth,
                             rr_survival, seed, index, view, row, col,

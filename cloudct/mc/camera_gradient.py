@@ -2,12 +2,12 @@
 
 Both estimators trace backward paths from pixels and deposit residual-weighted derivative
 terms into per-batch gradient arrays; this module chooses the pixels and the estimator.
-The pixels come either from every pixel with a non-zero residual (``samples_per_batch``
+The pixels come either from every pixel with a non-zero residual (``per_batch``
 samples of each pixel in each batch; sample k of pixel p in batch b has index
-``(p * nbatch + b) * samples_per_batch + k``, as in :func:`cloudct.mc.backward.
+``(p * nbatch + b) * per_batch + k``, as in :func:`cloudct.mc.backward.
 backward_batches`) or from an alias table in proportion to |residual|
-(:mod:`cloudct.mc.pixel_sampling`; ``samples_per_batch`` samples in all per batch, sample
-k of batch b has index ``b * samples_per_batch + k`` and draws its pixel from stream
+(:mod:`cloudct.mc.pixel_sampling`; ``per_batch`` samples in all per batch, sample
+k of batch b has index ``b * per_batch + k`` and draws its pixel from stream
 ``index`` of :data:`~cloudct.mc.random.DOMAIN_PIXEL_TABLE`). The CUDA kernel of
 :mod:`cloudct.mc.cuda_kernels` uses the same indices and :func:`gradient_sample`.
 """
@@ -56,12 +56,12 @@ def drawn_pixel(table, seed, index, nrows, ncols):
 @njit(parallel=True, cache=True)
 def camera_gradient_batches(
     grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
-    samples_per_batch, first, last, estimator, probes, quadratic, mis, residual, table,
+    per_batch, first, last, estimator, probes, quadratic, mis, residual, table,
     gradients, events,
 ):
     """gradients[b] (float64[nbatch, nx, ny, nz]) accumulates batch b's sum over its
     samples ``first .. last - 1`` of residual-weighted dI/dbeta_cloud estimates (not yet
-    divided by ``samples_per_batch``), parallel over batches; pixels as in the module
+    divided by ``per_batch``), parallel over batches; pixels as in the module
     docstring (an empty ``table``: every pixel with a non-zero residual). ``events[b]``
     accumulates the number of path vertices traced."""
     nbatch = gradients.shape[0]
@@ -77,7 +77,7 @@ def camera_gradient_batches(
                             continue
                         pixel = (view * nrows + row) * ncols + col
                         for k in range(first, last):
-                            index = (pixel * nbatch + b) * samples_per_batch + k
+                            index = (pixel * nbatch + b) * per_batch + k
                             n += gradient_sample(
                                 estimator, grid, bank, cams, sun, periodic, ground_albedo,
                                 rr_depth, rr_survival, seed, index, view, row, col, r,
@@ -85,7 +85,7 @@ def camera_gradient_batches(
                             )
         else:
             for k in range(first, last):
-                index = b * samples_per_batch + k
+                index = b * per_batch + k
                 view, row, col, weight = drawn_pixel(table, seed, index, nrows, ncols)
                 n += gradient_sample(
                     estimator, grid, bank, cams, sun, periodic, ground_albedo, rr_depth,

@@ -55,7 +55,7 @@ BYTES_PER_GRADIENT_PHOTON = 24
 
 
 class DeviceScene(NamedTuple):
-    """The kernel inputs of :class:`cloudct.mc.render.KernelInputs` that are arrays."""
+    """The kernel inputs of :class:`cloudct.mc.estimate.KernelInputs` that are arrays."""
 
     grid: tuple  # OpticalGrid of device arrays
     bank: tuple  # PhaseBank
@@ -255,7 +255,7 @@ def to_host(array) -> np.ndarray:
 
 
 def device_scene(k) -> DeviceScene:
-    """The arrays of :class:`cloudct.mc.render.KernelInputs` on the device."""
+    """The arrays of :class:`cloudct.mc.estimate.KernelInputs` on the device."""
     return DeviceScene(*to_device((k.grid, k.bank, k.cams, k.copies, k.sun)))
 
 
@@ -299,7 +299,7 @@ def launch_kernel(kernel, nthreads: int, threads_per_block: int, *args) -> None:
 
 
 class Launcher(ABC):
-    """Calls ``run(first, last)`` of :func:`cloudct.mc.render.run_in_rounds`: photons
+    """Calls ``run(first, last)`` of :func:`cloudct.mc.estimate.run_in_rounds`: photons
     ``first .. last - 1`` of every batch, in launches of at most ``chunk`` per batch. The
     outputs stay on the device until the round that ends at ``per_batch``, which copies
     them into the caller's host arrays."""
@@ -310,7 +310,7 @@ class Launcher(ABC):
 
     @property
     def max_rounds(self) -> int:
-        """Rounds for :func:`~cloudct.mc.render.run_in_rounds`: at least one launch each."""
+        """Rounds for :func:`~cloudct.mc.estimate.run_in_rounds`: at least one launch each."""
         return max(1, min(50, math.ceil(self.per_batch / self.chunk)))
 
     def __call__(self, first: int, last: int) -> None:
@@ -346,7 +346,7 @@ class ForwardLauncher(Launcher):
     RENDER fills ``images``, GRADIENT ``gradients`` (RESIDUAL then GRADIENT pass for every
     launch, the second in the order of :func:`sort_by_path_length` when ``sort_paths``).
     With a float64[nbatch, 1, 1, NFLUX] array ``fluxes`` (RENDER only), the photons also add
-    their flux tallies to it, as :func:`cloudct.mc.sensors.sensor_batches` does."""
+    their flux tallies to it, as :func:`cloudct.mc.forward.sensor_batches` does."""
 
     def __init__(
         self, k, rr_depth, rr_survival, seed, per_batch, mode, images, residual, gradients,
@@ -419,6 +419,16 @@ class ForwardLauncher(Launcher):
         events += to_host(self.events)
 
 
+class SensorLauncher(ForwardLauncher):
+    """The CUDA counterpart of :func:`cloudct.mc.forward.sensor_batches`, same arguments: a
+    RENDER launch that also adds the photons' flux tallies to ``fluxes``."""
+
+    def __init__(self, k, rr_depth, rr_survival, seed, per_batch, images, fluxes, events,
+                 **options):
+        super().__init__(k, rr_depth, rr_survival, seed, per_batch, RENDER, images, None, None,
+                         events, fluxes=fluxes, **options)
+
+
 class BackwardLauncher(Launcher):
     """The CUDA counterpart of :func:`cloudct.mc.backward.backward_batches`."""
 
@@ -447,16 +457,17 @@ class BackwardLauncher(Launcher):
 
 
 class CameraGradientLauncher(Launcher):
-    """The CUDA counterpart of :func:`cloudct.mc.camera_gradient.camera_gradient_batches`."""
+    """The CUDA counterpart of :func:`cloudct.mc.camera_gradient.camera_gradient_batches`,
+    same arguments."""
 
     def __init__(
-        self, k, rr_depth, rr_survival, seed, per_batch, method, residual, table, gradients,
-        events, *, threads_per_block: int | None = None,
+        self, k, rr_depth, rr_survival, seed, per_batch, estimator, probes, quadratic, mis,
+        residual, table, gradients, events, *, threads_per_block: int | None = None,
     ):
         self._pixel_sample_setup(k, rr_depth, rr_survival, seed, per_batch,
                                  (gradients, events), threads_per_block)
         check_fits(gradients.nbytes, "the per-batch gradients")
-        self.method = method  # (estimator, probes, quadratic, mis)
+        self.estimator = (estimator, probes, quadratic, mis)
         self.residual = to_device(residual)
         self.table = to_device(table)
         self.gradients = device_zeros(gradients.shape)
@@ -467,7 +478,7 @@ class CameraGradientLauncher(Launcher):
 
     def launch(self, first: int, count: int) -> None:
         launch_kernel(camera_gradient_kernel, self.width * count, self.tpb, self.scene,
-                      *self.scalars, first, count, *self.method, (self.residual, self.table,
+                      *self.scalars, first, count, *self.estimator, (self.residual, self.table,
                       self.gradients, self.events))
 
     def finish(self) -> None:

@@ -333,11 +333,11 @@ def trace_photon(
 @njit(parallel=True, cache=True)
 def forward_batches(
     grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
-    photons_per_batch, first, last, mode, images, residual, gradients, events,
+    per_batch, first, last, mode, images, residual, gradients, events,
 ):
     """Trace photons ``first .. last - 1`` of every batch, in parallel over batches.
 
-    Batch ``b`` owns photon indices ``b * photons_per_batch + k``, so which photons a batch
+    Batch ``b`` owns photon indices ``b * per_batch + k``, so which photons a batch
     holds, and their random streams, do not depend on the thread count. RENDER accumulates
     batch b's local estimates (not yet divided by its photon count) in ``images[b]``;
     GRADIENT accumulates its residual-weighted score-function gradient in ``gradients[b]``
@@ -351,7 +351,7 @@ def forward_batches(
                       np.zeros(1))
         n = 0
         for k in range(first, last):
-            index = b * photons_per_batch + k
+            index = b * per_batch + k
             if mode == RENDER:
                 n += trace_photon(
                     grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth,
@@ -369,4 +369,25 @@ def forward_batches(
                         path_sum, None, 0, trail,
                     )
                 n += vertices
+        events[b] += n
+
+
+@njit(parallel=True, cache=True)
+def sensor_batches(
+    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
+    per_batch, first, last, images, fluxes, events,
+):
+    """Trace photons ``first .. last - 1`` of every batch (the photons of
+    :func:`forward_batches` in RENDER mode), adding their local estimates
+    to ``images[b]`` and their flux tallies to ``fluxes[b]`` (float64[batches, 1, 1,
+    NFLUX]), in parallel over batches; ``events[b]`` counts the path vertices."""
+    unused = np.zeros((1, 1, 1))  # residual and gradient: not read or written in RENDER
+    for b in prange(images.shape[0]):
+        n = 0
+        for k in range(first, last):
+            n += trace_photon(
+                grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
+                seed, b * per_batch + k, RENDER, images[b], unused, unused, 0.0, None,
+                0, None, fluxes[b],
+            )[0]
         events[b] += n

@@ -30,14 +30,18 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
-from cloudct.mc.backend import resolve_backend
 from cloudct.mc.camera_gradient import DRT, SAMPLE_MATCHING
 from cloudct.mc.cameras import PROJECTIONS
-from cloudct.mc.executor import BatchExecutor, check_executor
+from cloudct.mc.estimate import (
+    Sampling,
+    batch_means,
+    check_residual,
+    kernel_inputs,
+    mean_and_std_error,
+)
+from cloudct.mc.executor import BatchExecutor
 from cloudct.mc.forward import GRADIENT
 from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS, pixel_table
-from cloudct.mc.render import check_residual, check_sampling, kernel_inputs, run_in_rounds
-from cloudct.mc.runners import camera_gradient_runner, forward_runner
 from cloudct.mc.scene import Scene
 from cloudct.mc.sun import check_cloud_share
 from cloudct.mc.traversal import require_exponential, require_smooth_flight_density
@@ -82,42 +86,17 @@ def score_function_gradient(
     Returns ``(mean, std_error, info)`` with arrays over (x, y, z) and ``info`` holding the
     photon count, path vertices and wall time.
     """
-    check_sampling(photons, batches, rr_depth, rr_survival)
+    sampling = Sampling(batches, seed, rr_depth, rr_survival, backend)
+    per_batch = sampling.per_batch(photons)
     residual = check_residual(residual, scene)
     k = kernel_inputs(medium, scene, aim_fraction, entry_cloud_share=entry_cloud_share)
     require_smooth_flight_density(k.grid, "score-function gradients")
-    per_batch = math.ceil(int(photons) / batches)
-    if executor is not None:
-        batch_means, info = check_executor(executor).gradient_batch_means(
-            k, residual, seed=seed, per_batch=per_batch, batches=batches,
-            rr_depth=rr_depth, rr_survival=rr_survival, backend=backend, progress=progress,
-        )
-        return (*mean_and_std_error(batch_means),
-                {**info, "entry_cloud_share": k.sun.cloud_share})
-    gradients = np.zeros((batches, *k.grid.extinction.shape[1:]))
-    no_images = np.zeros((batches, 1, 1, 1))
-    events = np.zeros(batches, dtype=np.int64)
-
-    backend = resolve_backend(backend)
-    run = forward_runner(
-        backend, k, rr_depth, rr_survival, seed, per_batch, GRADIENT, no_images, residual,
-        gradients, events,
-    )
-    wall = run_in_rounds(
-        run, per_batch, batches, progress, unit="photon", desc="gradient",
-        max_rounds=run.max_rounds,
-    )
-    info = {"photons": per_batch * batches, "events": int(events.sum()), "wall_time": wall,
-            "backend": backend, "aim_fraction": k.cams.aim_fraction,
+    gradients, run = batch_means("forward", k, (GRADIENT, residual), per_batch=per_batch,
+                                 sampling=sampling, progress=progress, executor=executor,
+                                 desc="gradient")
+    info = {"photons": per_batch * batches, **run, "aim_fraction": k.cams.aim_fraction,
             "entry_cloud_share": k.sun.cloud_share}
-    return (*mean_and_std_error(gradients / per_batch), info)
-
-
-def mean_and_std_error(batch_means: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The mean over the batches (axis 0) and its standard error (std of the batch means
-    over sqrt(batches))."""
-    return (batch_means.mean(axis=0),
-            batch_means.std(axis=0, ddof=1) / math.sqrt(batch_means.shape[0]))
+    return (*mean_and_std_error(gradients), info)
 
 
 def _camera_gradient(
@@ -127,7 +106,8 @@ def _camera_gradient(
     quadratic: bool = False, mis: bool = False, executor: BatchExecutor | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """The camera-side estimators' common host side (see :func:`drt_gradient`)."""
-    check_sampling(samples_per_pixel, batches, rr_depth, rr_survival)
+    sampling = Sampling(batches, seed, rr_depth, rr_survival, backend)
+    sampling.per_batch(samples_per_pixel)  # a positive count
     residual = check_residual(residual, scene)
     k = kernel_inputs(medium, scene, aim_fraction=0.0)  # camera paths aim at no camera
     require_exponential(k.grid, "DRT and sample-matching gradients")
@@ -136,33 +116,15 @@ def _camera_gradient(
     # per batch: samples of each pixel (uniform), or as many samples in all as
     # samples_per_pixel x pixels (table), not rounded up to whole samples of each pixel in
     # each batch (that rounding would trace pixels x batches samples at the least)
-    if table.pixel.size:
-        per_batch = math.ceil(int(samples_per_pixel) * pixels / batches)
-    else:
-        per_batch = math.ceil(int(samples_per_pixel) / batches)
-    estimator_args = (estimator, int(probes), bool(quadratic), bool(mis))
-    if executor is not None:
-        batch_means, info = check_executor(executor).camera_gradient_batch_means(
-            k, residual, table, estimator_args=estimator_args, seed=seed,
-            per_batch=per_batch, batches=batches, rr_depth=rr_depth,
-            rr_survival=rr_survival, backend=backend, progress=progress,
-        )
-    else:
-        gradients = np.zeros((batches, *k.grid.extinction.shape[1:]))
-        events = np.zeros(batches, dtype=np.int64)
-        backend = resolve_backend(backend)
-        run = camera_gradient_runner(
-            backend, k, rr_depth, rr_survival, seed, per_batch, estimator_args, residual,
-            table, gradients, events,
-        )
-        name = "DRT" if estimator == DRT else "sample matching"
-        wall = run_in_rounds(run, per_batch, batches, progress, unit="sample", desc=name,
-                             max_rounds=run.max_rounds)
-        batch_means = gradients / per_batch
-        info = {"events": int(events.sum()), "wall_time": wall, "backend": backend}
+    per_batch = sampling.per_batch(int(samples_per_pixel) * (pixels if table.pixel.size else 1))
+    args = (estimator, int(probes), bool(quadratic), bool(mis), residual, table)
+    gradients, run = batch_means(
+        "camera-gradient", k, args, per_batch=per_batch, sampling=sampling, progress=progress,
+        executor=executor, desc="DRT" if estimator == DRT else "sample matching",
+    )
     samples = per_batch * batches * (1 if table.pixel.size else pixels)
-    info = {"photons": samples, **info, "pixel_sampling": pixel_sampling}
-    return (*mean_and_std_error(batch_means), info)
+    info = {"photons": samples, **run, "pixel_sampling": pixel_sampling}
+    return (*mean_and_std_error(gradients), info)
 
 
 def drt_gradient(
@@ -258,11 +220,11 @@ def sample_matching_gradient(
 @dataclass(frozen=True)
 class GradientEstimator:
     """What the retrieval, the command line and the diagnostics need to know of a gradient
-    estimator: its name and title, whether it traces camera paths (``paths`` are then
+    estimator: its name and title, whether it traces camera paths (``photons`` are then
     spread over the pixels with a non-zero residual, uniformly or in proportion to
     |residual|) or forward photons (each serves every pixel), whether path recycling and
     L-BFGS-B windows can replay its stored paths, the transmittance families it
-    differentiates, and ``run(medium, scene, residual, *, paths, seed, batches,
+    differentiates, and ``run(medium, scene, residual, *, photons, seed, batches,
     pixel_sampling, progress, backend, executor, entry_cloud_share)``."""
 
     name: str
@@ -276,27 +238,28 @@ class GradientEstimator:
     projections: tuple[str, ...] = PROJECTIONS
 
 
-def _score_run(medium, scene, residual, *, paths, seed, batches, pixel_sampling, progress,
+def _score_run(medium, scene, residual, *, photons, seed, batches, pixel_sampling, progress,
                backend, executor, entry_cloud_share):
     if pixel_sampling != "uniform":
         raise ValueError("pixel_sampling applies to the camera-side estimators (drt, sm): "
                          "one forward photon serves every pixel")
     return score_function_gradient(
-        medium, scene, residual, photons=paths, seed=seed, batches=batches,
+        medium, scene, residual, photons=photons, seed=seed, batches=batches,
         progress=progress, backend=backend, executor=executor,
         entry_cloud_share=entry_cloud_share,
     )
 
 
 def _camera_side_run(estimator: Callable) -> Callable:
-    """``run`` of a camera-side estimator: ``paths`` in all over the residual's pixels."""
+    """``run`` of a camera-side estimator: ``photons`` paths in all over the residual's
+    pixels."""
 
-    def run(medium, scene, residual, *, paths, seed, batches, pixel_sampling, progress,
+    def run(medium, scene, residual, *, photons, seed, batches, pixel_sampling, progress,
             backend, executor, entry_cloud_share):
         residual = check_residual(residual, scene)
         pixels = max(int(np.count_nonzero(residual)), 1)
         return estimator(
-            medium, scene, residual, samples_per_pixel=max(math.ceil(int(paths) / pixels), 1),
+            medium, scene, residual, samples_per_pixel=max(math.ceil(int(photons) / pixels), 1),
             seed=seed, batches=batches, pixel_sampling=pixel_sampling, progress=progress,
             backend=backend, executor=executor,
         )
@@ -359,7 +322,7 @@ def gradient_estimate(
     residual: np.ndarray,
     *,
     estimator: str = "score",
-    paths: int,
+    photons: int,
     seed: int = 0,
     batches: int = 32,
     pixel_sampling: str = "uniform",
@@ -369,12 +332,13 @@ def gradient_estimate(
     entry_cloud_share: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """sum_d residual_d dI_d / d beta_cloud per voxel by the estimator named ``estimator``
-    (one of :data:`ESTIMATORS`), with ``paths`` paths in all.
+    (one of :data:`ESTIMATORS`), with ``photons`` paths in all (the count the retrieval's
+    ``--photons`` sets, the same name from the command line to here).
 
-    ``"score"`` traces ``paths`` forward photons (each serves every pixel), a share
+    ``"score"`` traces ``photons`` forward photons (each serves every pixel), a share
     ``entry_cloud_share`` of them entering where the clouds are
     (:func:`score_function_gradient`; the camera-side estimators ignore it). ``"drt"`` and
-    ``"sm"`` trace camera paths: ``ceil(paths / n)`` samples per pixel for the n pixels
+    ``"sm"`` trace camera paths: ``ceil(photons / n)`` samples per pixel for the n pixels
     whose residual is not zero, drawn per pixel (``pixel_sampling="uniform"``) or, as many
     in all, in proportion to |residual| (``"residual"``; :mod:`cloudct.mc.pixel_sampling`).
     An ``executor`` traces the batches of any of them elsewhere (bitwise the same result).
@@ -385,7 +349,7 @@ def gradient_estimate(
     record = gradient_estimator(estimator)
     check_cloud_share(entry_cloud_share)
     mean, std_error, info = record.run(
-        medium, scene, residual, paths=paths, seed=seed, batches=batches,
+        medium, scene, residual, photons=photons, seed=seed, batches=batches,
         pixel_sampling=pixel_sampling, progress=progress, backend=backend,
         executor=executor, entry_cloud_share=entry_cloud_share,
     )

@@ -14,32 +14,18 @@ depend on the number of threads.
 from __future__ import annotations
 
 import math
-import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import xarray as xr
-from tqdm.auto import tqdm
 
-from cloudct.mc.backend import resolve_backend
-from cloudct.mc.cameras import CameraArrays, camera_arrays
-from cloudct.mc.detector_sampling import DEFAULT_AIM_FRACTION
-from cloudct.mc.executor import BatchExecutor, check_executor
+from cloudct.mc.estimate import Sampling, batch_means, kernel_inputs, mean_and_std_error
+from cloudct.mc.executor import BatchExecutor
 from cloudct.mc.forward import RENDER
-from cloudct.mc.runners import backward_runner, forward_runner
-from cloudct.mc.scene import (
-    Scene,
-    check_scene,
-    periodic_copy_ranges,
-)
-from cloudct.mc.sun import SunArrays, check_cloud_share, sun_arrays
-from cloudct.medium import cell_edges, is_optical, validate_medium
+from cloudct.mc.scene import Scene
+from cloudct.mc.sun import check_cloud_share
 from cloudct.netcdf import save_netcdf
-from cloudct.optics import DEFAULT_OPTICS, kernel_arrays, optics_name, to_optical
-from cloudct.physics.mixing import OpticalGrid
-from cloudct.physics.phase import TABULATED, PhaseBank
+from cloudct.optics import DEFAULT_OPTICS, optics_name, to_optical
 
 RADIANCE_UNITS = "1"  # in units of the solar irradiance perpendicular to the rays, per sr
 METHODS = ("forward", "backward")
@@ -128,14 +114,13 @@ def render(
     >>> float(radiance[0, 0]), bool(radiance[3:5, 3:5].min() > 0.0)  # sky, cloud
     (0.0, True)
     """
-    batch_means, info = render_batches(
+    images, info = render_batches(
         medium, scene, photons=photons, method=method, seed=seed, batches=batches,
         rr_depth=rr_depth, rr_survival=rr_survival, aim_fraction=aim_fraction,
         progress=progress, backend=backend, executor=executor,
         entry_cloud_share=entry_cloud_share,
     )
-    radiance = batch_means.mean(axis=0)
-    std_error = batch_means.std(axis=0, ddof=1) / math.sqrt(batches)
+    radiance, std_error = mean_and_std_error(images)
     return images_dataset(radiance, std_error, scene, optics=optics_name(medium), **info)
 
 
@@ -159,141 +144,21 @@ def render_batches(
     attributes; :func:`render` averages them. Arguments as for :func:`render`."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    check_sampling(photons, batches, rr_depth, rr_survival)
+    sampling = Sampling(batches, seed, rr_depth, rr_survival, backend)
+    per_batch = sampling.per_batch(photons)
     check_cloud_share(entry_cloud_share)
     forward = method == "forward"
     k = kernel_inputs(medium, scene, aim_fraction if forward else 0.0,
                       entry_cloud_share=entry_cloud_share if forward else 0.0)
-    per_batch = math.ceil(int(photons) / batches)
-    if executor is not None:
-        batch_means, info = check_executor(executor).render_batch_means(
-            k, method=method, seed=seed, per_batch=per_batch, batches=batches,
-            rr_depth=rr_depth, rr_survival=rr_survival, backend=backend, progress=progress,
-        )
-        return batch_means, {**info, "entry_cloud_share": k.sun.cloud_share}
-    images = np.zeros((batches, len(scene.cameras), k.cams.nrows, k.cams.ncols))
-    events = np.zeros(batches, dtype=np.int64)
-    no_residual = np.zeros((1, 1, 1))
-    no_gradients = np.zeros((batches, 1, 1, 1))
-
-    backend = resolve_backend(backend)
-    if method == "forward":
-        run = forward_runner(
-            backend, k, rr_depth, rr_survival, seed, per_batch, RENDER, images, no_residual,
-            no_gradients, events,
-        )
-    else:
-        run = backward_runner(backend, k, rr_depth, rr_survival, seed, per_batch, images, events)
-
-    unit = "photon" if method == "forward" else "sample/px"
-    wall = run_in_rounds(
-        run, per_batch, batches, progress, unit=unit, desc=method, max_rounds=run.max_rounds
-    )
-
+    kernel, args = ("forward", (RENDER, None)) if forward else ("backward", ())
+    images, run = batch_means(kernel, k, args, per_batch=per_batch, sampling=sampling,
+                              progress=progress, executor=executor, desc=method)
     info = dict(
         method=method, photons=per_batch * batches, seed=seed, batches=batches,
-        events=int(events.sum()), wall_time=wall, rr_depth=rr_depth, rr_survival=rr_survival,
-        aim_fraction=k.cams.aim_fraction, entry_cloud_share=k.sun.cloud_share,
-        backend=backend,
+        rr_depth=rr_depth, rr_survival=rr_survival, aim_fraction=k.cams.aim_fraction,
+        entry_cloud_share=k.sun.cloud_share, **run,
     )
-    return images / per_batch, info
-
-
-def check_sampling(samples: int, batches: int, rr_depth: int, rr_survival: float) -> None:
-    """Refuse sample counts, batch counts and Russian-roulette settings that cannot work."""
-    if int(samples) < 1:
-        raise ValueError(f"photons (samples) must be a positive count, got {samples}")
-    if int(batches) < 2:
-        raise ValueError(f"batches must be at least 2 for standard errors, got {batches}")
-    if not 0.0 < rr_survival <= 1.0 or rr_depth < 1:
-        raise ValueError("rr_survival must be in (0, 1] and rr_depth >= 1")
-
-
-def check_residual(residual: np.ndarray, scene: Scene) -> np.ndarray:
-    """The residual weights as a float64 (view, row, col) array matching the scene."""
-    residual = np.ascontiguousarray(residual, dtype=np.float64)
-    cam = scene.cameras[0]
-    shape = (len(scene.cameras), cam.nrows, cam.ncols)
-    if residual.shape != shape:
-        raise ValueError(f"residual has shape {residual.shape}, the scene's images {shape}")
-    if not np.all(np.isfinite(residual)):
-        raise ValueError("residual has NaN or infinite pixels (mask them with weight 0)")
-    return residual
-
-
-class KernelInputs(NamedTuple):
-    """Everything the kernels need of a medium and a scene."""
-
-    grid: OpticalGrid
-    bank: PhaseBank
-    cams: CameraArrays
-    copies: np.ndarray
-    sun: SunArrays
-    periodic: bool
-    ground: float  # ground albedo, -1 for no ground
-    edges: tuple[np.ndarray, np.ndarray, np.ndarray]
-
-
-def kernel_inputs(
-    medium: xr.Dataset, scene: Scene, aim_fraction: float | None = None,
-    entry_cloud_share: float = 0.0,
-) -> KernelInputs:
-    """Validate a medium and a scene and gather them into kernel arrays (``aim_fraction``:
-    the forward estimator's detector directional importance sampling, see
-    :mod:`cloudct.mc.detector_sampling`; 0 switches it off, None chooses it by the optics:
-    :func:`default_aim_fraction`). ``entry_cloud_share``: the forward photons' share m in
-    [0, 1) entering where the clouds are (:func:`cloudct.mc.sun.sun_arrays`; 0: uniform
-    entry)."""
-    grid, bank, edges = medium_arrays(medium)
-    check_scene(scene, edges)
-    if aim_fraction is None:
-        aim_fraction = default_aim_fraction(bank)
-    return KernelInputs(
-        grid=grid,
-        bank=bank,
-        cams=camera_arrays(scene.cameras, aim_fraction),
-        copies=periodic_copy_ranges(scene, edges),
-        sun=sun_arrays(scene.sun, edges, scene.periodic, grid, entry_cloud_share),
-        periodic=scene.periodic,
-        ground=-1.0 if scene.ground_albedo is None else float(scene.ground_albedo),
-        edges=edges,
-    )
-
-
-def medium_arrays(
-    medium: xr.Dataset,
-) -> tuple[OpticalGrid, PhaseBank, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """A validated medium's kernel arrays and cell edges (microphysical media converted
-    with their optics)."""
-    validate_medium(medium)
-    optical = medium if is_optical(medium) else to_optical(medium)
-    grid, bank = kernel_arrays(optical)
-    return grid, bank, cell_edges(optical)
-
-
-def default_aim_fraction(bank: PhaseBank) -> float:
-    """The aim fraction used when none is given: :data:`DEFAULT_AIM_FRACTION` when a phase
-    function is tabulated (Mie optics, whose diffraction peak makes fireflies), else 0
-    (Henyey-Greenstein and Rayleigh: measured in docs/benchmarks.md, "Mie optics")."""
-    return DEFAULT_AIM_FRACTION if np.any(bank.kind == TABULATED) else 0.0
-
-
-def run_in_rounds(
-    run: Callable[[int, int], None], per_batch: int, batches: int, progress: bool | None,
-    unit: str, desc: str, max_rounds: int = 50,
-) -> float:
-    """Call ``run(first, last)`` over up to ``max_rounds`` rounds of the per-batch sample
-    range, with a progress bar; returns the wall time in seconds."""
-    rounds = np.unique(
-        np.linspace(0, per_batch, min(per_batch, max_rounds) + 1).astype(np.int64)
-    )
-    disable = None if progress is None else not progress
-    start = time.perf_counter()
-    with tqdm(total=per_batch * batches, disable=disable, unit=unit, desc=desc) as bar:
-        for first, last in zip(rounds[:-1], rounds[1:], strict=True):
-            run(int(first), int(last))
-            bar.update(int(last - first) * batches)
-    return time.perf_counter() - start
+    return images, info
 
 
 def images_dataset(

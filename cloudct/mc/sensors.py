@@ -24,22 +24,28 @@ What a plane-parallel code or a satellite product reports, from one set of forwa
   estimate serves it unchanged; its variance has no 1 / r^2 of a near pinhole and does not
   depend on the domain's size.
 
-Both back ends: the CPU's :func:`sensor_batches`, or on a GPU the forward render kernel's
-sibling that tallies the fluxes too (:func:`cloudct.mc.cuda_kernels.forward_sensor_kernel`);
-the same photons either way.
+Both back ends (the ``sensors`` batch kernel of :mod:`cloudct.mc.estimate`): the CPU's
+:func:`cloudct.mc.forward.sensor_batches`, or on a GPU the forward render kernel's sibling
+that tallies the fluxes too (:func:`cloudct.mc.cuda_kernels.forward_sensor_kernel`); the
+same photons either way.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
 import xarray as xr
-from numba import njit, prange
 
-from cloudct.mc.backend import resolve_backend
 from cloudct.mc.cameras import DOMAIN, CameraArrays, travel_direction
+from cloudct.mc.estimate import (
+    KernelInputs,
+    Sampling,
+    batch_means,
+    default_aim_fraction,
+    mean_and_std_error,
+    medium_arrays,
+)
 from cloudct.mc.forward import (
     FLUX_DIFFUSE,
     FLUX_DIRECT,
@@ -48,42 +54,11 @@ from cloudct.mc.forward import (
     FLUX_SIDE,
     FLUX_TOP,
     NFLUX,
-    RENDER,
-    trace_photon,
 )
-from cloudct.mc.gradient import mean_and_std_error
-from cloudct.mc.render import (
-    RADIANCE_UNITS,
-    KernelInputs,
-    check_sampling,
-    default_aim_fraction,
-    medium_arrays,
-    run_in_rounds,
-)
+from cloudct.mc.render import RADIANCE_UNITS
 from cloudct.mc.scene import BOUNDARIES
 from cloudct.mc.sun import Sun, sun_arrays
 from cloudct.optics import optics_name
-
-
-@njit(parallel=True, cache=True)
-def sensor_batches(
-    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
-    photons_per_batch, first, last, images, fluxes, events,
-):
-    """Trace photons ``first .. last - 1`` of every batch (the photons of
-    :func:`cloudct.mc.forward.forward_batches` in RENDER mode), adding their local estimates
-    to ``images[b]`` and their flux tallies to ``fluxes[b]`` (float64[batches, 1, 1,
-    NFLUX]), in parallel over batches; ``events[b]`` counts the path vertices."""
-    unused = np.zeros((1, 1, 1))  # residual and gradient: not read or written in RENDER
-    for b in prange(images.shape[0]):
-        n = 0
-        for k in range(first, last):
-            n += trace_photon(
-                grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
-                seed, b * photons_per_batch + k, RENDER, images[b], unused, unused, 0.0, None,
-                0, None, fluxes[b],
-            )[0]
-        events[b] += n
 
 
 def probe_arrays(
@@ -162,7 +137,8 @@ def domain_means(
         raise ValueError(f"boundary must be one of {BOUNDARIES}, got {boundary!r}")
     if ground_albedo is not None and not 0.0 <= ground_albedo <= 1.0:
         raise ValueError(f"ground_albedo must be in [0, 1], got {ground_albedo}")
-    check_sampling(photons, batches, rr_depth, rr_survival)
+    sampling = Sampling(batches, seed, rr_depth, rr_survival, backend)
+    per_batch = sampling.per_batch(photons)
     sun = Sun() if sun is None else sun
     angles = np.array(directions, dtype=float).reshape(-1, 2)
     if not np.all(np.isfinite(angles)) or np.any(
@@ -182,34 +158,16 @@ def domain_means(
         periodic=periodic, ground=-1.0 if ground_albedo is None else float(ground_albedo),
         edges=edges,
     )
-    per_batch = math.ceil(int(photons) / batches)
-    images = np.zeros((batches, len(angles), 1, 1))
     fluxes = np.zeros((batches, 1, 1, NFLUX))
-    events = np.zeros(batches, dtype=np.int64)
-    backend = resolve_backend(backend)
-    if backend == "cuda":
-        from cloudct.mc.cuda_kernels import ForwardLauncher
-
-        run = ForwardLauncher(k, rr_depth, rr_survival, seed, per_batch, RENDER, images,
-                              None, None, events, fluxes=fluxes)
-        max_rounds = run.max_rounds
-    else:
-        head = (k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, rr_depth,
-                rr_survival, seed, per_batch)
-
-        def run(first: int, last: int) -> None:
-            sensor_batches(*head, first, last, images, fluxes, events)
-
-        max_rounds = 50
-    wall = run_in_rounds(run, per_batch, batches, progress, unit="photon", desc="fluxes",
-                         max_rounds=max_rounds)
+    means, run = batch_means("sensors", k, (fluxes,), per_batch=per_batch, sampling=sampling,
+                             progress=progress, desc="fluxes")
     shares = fluxes[:, 0, 0, :] / (per_batch * k.sun.power)
     info = dict(photons=per_batch * batches, seed=seed, batches=batches,
-                events=int(events.sum()), wall_time=wall, rr_depth=rr_depth,
+                events=run["events"], wall_time=run["wall_time"], rr_depth=rr_depth,
                 rr_survival=rr_survival, aim_fraction=float(aim_fraction),
-                entry_cloud_share=k.sun.cloud_share, backend=backend,
+                entry_cloud_share=k.sun.cloud_share, backend=run["backend"],
                 optics=optics_name(medium))
-    return _sensors_dataset(images[:, :, 0, 0] / per_batch, shares, angles, k, sun, boundary,
+    return _sensors_dataset(means[:, :, 0, 0], shares, angles, k, sun, boundary,
                             ground_albedo, info)
 
 

@@ -185,7 +185,7 @@ class ReplayLauncher(ck.Launcher):
     :func:`~cloudct.recycling.replay_kernels.replay_gradient_batches` (GRADIENT: ``out`` the
     per-batch gradients, weighted by ``residual``), as ``run(first, last)`` for
     :func:`~cloudct.recycling.store.run_batches`. ``k`` is the
-    :class:`~cloudct.mc.render.KernelInputs` and ``beta`` the flat total extinction of the
+    :class:`~cloudct.mc.estimate.KernelInputs` and ``beta`` the flat total extinction of the
     current medium; ``use_crossings`` as for the CPU kernels. The outputs (sums over the
     paths, as on the CPU), ``log_ratio`` (by photon-order position) and ``events`` are
     filled once the last round has run."""

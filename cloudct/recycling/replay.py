@@ -29,8 +29,9 @@ import numpy as np
 import xarray as xr
 
 from cloudct.mc.backend import resolve_backend
+from cloudct.mc.estimate import KernelInputs, check_residual, kernel_inputs
 from cloudct.mc.forward import GRADIENT, RENDER
-from cloudct.mc.render import KernelInputs, check_residual, images_dataset, kernel_inputs
+from cloudct.mc.render import images_dataset
 from cloudct.mc.traversal import require_exponential
 from cloudct.medium import cell_edges
 from cloudct.recycling.path_terms import flat_total_extinction

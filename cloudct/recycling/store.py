@@ -50,8 +50,8 @@ from functools import cached_property
 import numpy as np
 import xarray as xr
 
+from cloudct.mc.estimate import kernel_inputs, run_in_rounds
 from cloudct.mc.forward import ENTRY, ESCAPE, GROUND, SCATTER, PathRecord
-from cloudct.mc.render import kernel_inputs, run_in_rounds
 from cloudct.mc.scene import Scene
 from cloudct.mc.traversal import require_exponential
 from cloudct.recycling.connection_recording import record_connections_within_budget

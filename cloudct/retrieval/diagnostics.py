@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
+from cloudct.mc.estimate import check_residual
 from cloudct.mc.gradient import gradient_estimate, gradient_estimator
-from cloudct.mc.render import check_residual
 from cloudct.mc.scene import Scene
 
 
@@ -27,8 +27,8 @@ def _estimate(
     every pixel with a non-zero residual (camera-side estimators)."""
     residual = check_residual(residual, scene)
     per_pixel = gradient_estimator(estimator).camera_side
-    paths = samples * max(int(np.count_nonzero(residual)), 1) if per_pixel else samples
-    return gradient_estimate(medium, scene, residual, estimator=estimator, paths=paths,
+    photons = samples * max(int(np.count_nonzero(residual)), 1) if per_pixel else samples
+    return gradient_estimate(medium, scene, residual, estimator=estimator, photons=photons,
                              seed=seed)[0]
 
 

@@ -404,7 +404,7 @@ class Retrieval:
         if not config.recycle_gradient:
             gradient, _, info = gradient_estimate(
                 medium, Scene.from_dataset(data), residual(ev.images),
-                estimator=config.estimator[s.stage], paths=gradient_photons,
+                estimator=config.estimator[s.stage], photons=gradient_photons,
                 seed=2 * self._seed(s.iteration) + 1, pixel_sampling=config.pixel_sampling,
                 backend=self.backend,
                 executor=None if self.client is None else executor(self.client),

@@ -140,7 +140,7 @@ def loss_and_gradient(
     )
     loss, residual = image_loss(images["radiance"].values, measurements["radiance"].values, w)
     mean, std_error, info = gradient_estimate(
-        medium, scene, residual, estimator=estimator, paths=gradient_photons or photons,
+        medium, scene, residual, estimator=estimator, photons=gradient_photons or photons,
         seed=2 * seed + 1, batches=batches, pixel_sampling=pixel_sampling, progress=progress,
         backend=backend, executor=spread,
     )

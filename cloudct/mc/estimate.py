@@ -1,0 +1,358 @@
+"""The scaffold every Monte Carlo estimate of cloudct runs on, held once.
+
+A render, a gradient or a set of domain-mean fluxes is a sum over ``sampling.batches``
+independent batches of paths: the estimate is the mean of the batch means and its standard
+error their standard deviation over sqrt(batches) (:func:`mean_and_std_error`). This module
+holds what every estimator shares:
+
+- the **kernel inputs**: a validated medium and scene as the kernels' arrays
+  (:func:`kernel_inputs`);
+- the **sampling**: batches, Russian roulette, seed and back end (:class:`Sampling`), with
+  the checks of sample counts and of pixel weights (:func:`check_residual`);
+- **batching and the photon-index rule**: ``ceil(samples / batches)`` samples per batch;
+  photon (or drawn pixel sample) k of batch b has index ``b * per_batch + k``, sample k of
+  pixel p in batch b ``(p * batches + b) * per_batch + k`` (each index owns its random
+  streams, so an estimate does not depend on threads, rounds, devices or workers);
+- **rounds**: a runner traces samples ``first .. last - 1`` of every batch, called in up to
+  50 rounds with a progress bar (:func:`run_in_rounds`);
+- the **batch kernels**: :data:`BATCH_KERNELS` holds one :class:`BatchKernel` per kind of
+  path the engine traces (forward photons for images or for the score-function gradient,
+  forward photons with flux tallies, backward pixel samples, camera-side gradient samples),
+  with its CPU batch kernel, its CUDA launcher and how its batches may be split;
+- **where batches run**: :func:`batch_means` runs a batch kernel in this process, on the CPU
+  or a GPU, or hands it to a :class:`~cloudct.mc.executor.BatchExecutor` (Dask workers),
+  whose one entry point takes the kernel's name.
+
+The gradient estimators the retrieval chooses from by name, and what each supports, are
+registered in :data:`cloudct.mc.gradient.ESTIMATORS`; each names its batch kernel here.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import xarray as xr
+from tqdm.auto import tqdm
+
+from cloudct.mc.backend import BACKENDS, resolve_backend
+from cloudct.mc.backward import backward_batches
+from cloudct.mc.camera_gradient import camera_gradient_batches
+from cloudct.mc.cameras import CameraArrays, camera_arrays
+from cloudct.mc.detector_sampling import DEFAULT_AIM_FRACTION
+from cloudct.mc.executor import BatchExecutor, check_executor
+from cloudct.mc.forward import RENDER, forward_batches, sensor_batches
+from cloudct.mc.scene import Scene, check_scene, periodic_copy_ranges
+from cloudct.mc.sun import SunArrays, sun_arrays
+from cloudct.medium import cell_edges, is_optical, validate_medium
+from cloudct.optics import kernel_arrays, to_optical
+from cloudct.physics.mixing import OpticalGrid
+from cloudct.physics.phase import TABULATED, PhaseBank
+
+# ------------------------------------------------------------------------------------------
+# Kernel inputs
+# ------------------------------------------------------------------------------------------
+
+
+class KernelInputs(NamedTuple):
+    """Everything the kernels need of a medium and a scene."""
+
+    grid: OpticalGrid
+    bank: PhaseBank
+    cams: CameraArrays
+    copies: np.ndarray
+    sun: SunArrays
+    periodic: bool
+    ground: float  # ground albedo, -1 for no ground
+    edges: tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def kernel_inputs(
+    medium: xr.Dataset, scene: Scene, aim_fraction: float | None = None,
+    entry_cloud_share: float = 0.0,
+) -> KernelInputs:
+    """Validate a medium and a scene and gather them into kernel arrays (``aim_fraction``:
+    the forward estimator's detector directional importance sampling, see
+    :mod:`cloudct.mc.detector_sampling`; 0 switches it off, None chooses it by the optics:
+    :func:`default_aim_fraction`). ``entry_cloud_share``: the forward photons' share m in
+    [0, 1) entering where the clouds are (:func:`cloudct.mc.sun.sun_arrays`; 0: uniform
+    entry)."""
+    grid, bank, edges = medium_arrays(medium)
+    check_scene(scene, edges)
+    if aim_fraction is None:
+        aim_fraction = default_aim_fraction(bank)
+    return KernelInputs(
+        grid=grid,
+        bank=bank,
+        cams=camera_arrays(scene.cameras, aim_fraction),
+        copies=periodic_copy_ranges(scene, edges),
+        sun=sun_arrays(scene.sun, edges, scene.periodic, grid, entry_cloud_share),
+        periodic=scene.periodic,
+        ground=-1.0 if scene.ground_albedo is None else float(scene.ground_albedo),
+        edges=edges,
+    )
+
+
+def medium_arrays(
+    medium: xr.Dataset,
+) -> tuple[OpticalGrid, PhaseBank, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """A validated medium's kernel arrays and cell edges (microphysical media converted
+    with their optics)."""
+    validate_medium(medium)
+    optical = medium if is_optical(medium) else to_optical(medium)
+    grid, bank = kernel_arrays(optical)
+    return grid, bank, cell_edges(optical)
+
+
+def default_aim_fraction(bank: PhaseBank) -> float:
+    """The aim fraction used when none is given: :data:`DEFAULT_AIM_FRACTION` when a phase
+    function is tabulated (Mie optics, whose diffraction peak makes fireflies), else 0
+    (Henyey-Greenstein and Rayleigh: measured in docs/benchmarks.md, "Mie optics")."""
+    return DEFAULT_AIM_FRACTION if np.any(bank.kind == TABULATED) else 0.0
+
+
+# ------------------------------------------------------------------------------------------
+# Sampling
+# ------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Sampling:
+    """How an estimate's paths are sampled, whatever the estimator.
+
+    ``batches``: independent batches (at least 2, for standard errors); ``seed``: of the
+    counter-based random streams (same seed, same estimate); ``rr_depth``,
+    ``rr_survival``: Russian roulette, from vertex ``rr_depth`` on a path survives each
+    vertex with probability ``rr_survival`` (medium-independent, unbiased); ``backend``:
+    ``"cpu"``, ``"cuda"`` or ``"auto"`` (:mod:`cloudct.mc.backend`). Checked when made.
+    """
+
+    batches: int = 32
+    seed: int = 0
+    rr_depth: int = 100
+    rr_survival: float = 0.95
+    backend: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if int(self.batches) < 2:
+            raise ValueError(f"batches must be at least 2 for standard errors, got "
+                             f"{self.batches}")
+        if not 0.0 < self.rr_survival <= 1.0 or self.rr_depth < 1:
+            raise ValueError("rr_survival must be in (0, 1] and rr_depth >= 1")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
+
+    def per_batch(self, samples: int) -> int:
+        """Samples per batch for ``samples`` in all (a positive count), rounded up."""
+        if int(samples) < 1:
+            raise ValueError(f"photons (samples) must be a positive count, got {samples}")
+        return math.ceil(int(samples) / self.batches)
+
+
+def check_residual(residual: np.ndarray, scene: Scene) -> np.ndarray:
+    """The residual weights as a float64 (view, row, col) array matching the scene."""
+    residual = np.ascontiguousarray(residual, dtype=np.float64)
+    cam = scene.cameras[0]
+    shape = (len(scene.cameras), cam.nrows, cam.ncols)
+    if residual.shape != shape:
+        raise ValueError(f"residual has shape {residual.shape}, the scene's images {shape}")
+    if not np.all(np.isfinite(residual)):
+        raise ValueError("residual has NaN or infinite pixels (mask them with weight 0)")
+    return residual
+
+
+# ------------------------------------------------------------------------------------------
+# Rounds and reduction
+# ------------------------------------------------------------------------------------------
+
+
+def run_in_rounds(
+    run: Callable[[int, int], None], per_batch: int, batches: int, progress: bool | None,
+    unit: str, desc: str, max_rounds: int = 50,
+) -> float:
+    """Call ``run(first, last)`` over up to ``max_rounds`` rounds of the per-batch sample
+    range, with a progress bar; returns the wall time in seconds."""
+    rounds = np.unique(
+        np.linspace(0, per_batch, min(per_batch, max_rounds) + 1).astype(np.int64)
+    )
+    disable = None if progress is None else not progress
+    start = time.perf_counter()
+    with tqdm(total=per_batch * batches, disable=disable, unit=unit, desc=desc) as bar:
+        for first, last in zip(rounds[:-1], rounds[1:], strict=True):
+            run(int(first), int(last))
+            bar.update(int(last - first) * batches)
+    return time.perf_counter() - start
+
+
+def mean_and_std_error(batch_means: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mean over the batches (axis 0) and its standard error (std of the batch means
+    over sqrt(batches))."""
+    return (batch_means.mean(axis=0),
+            batch_means.std(axis=0, ddof=1) / math.sqrt(batch_means.shape[0]))
+
+
+# ------------------------------------------------------------------------------------------
+# Batch kernels
+# ------------------------------------------------------------------------------------------
+
+
+class _CPURunner:
+    """Calls a CPU batch kernel with fixed arguments around ``first, last``."""
+
+    max_rounds = 50
+
+    def __init__(self, kernel, head: tuple, tail: tuple):
+        self.kernel = kernel
+        self.head = head
+        self.tail = tail
+
+    def __call__(self, first: int, last: int) -> None:
+        self.kernel(*self.head, first, last, *self.tail)
+
+
+def _forward_head(k: KernelInputs, s: Sampling, per_batch: int) -> tuple:
+    return (k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, s.rr_depth,
+            s.rr_survival, s.seed, per_batch)
+
+
+def _camera_head(k: KernelInputs, s: Sampling, per_batch: int) -> tuple:
+    return (k.grid, k.bank, k.cams, k.sun, k.periodic, k.ground, s.rr_depth, s.rr_survival,
+            s.seed, per_batch)
+
+
+def _forward_tail(args: tuple, values: np.ndarray, events: np.ndarray) -> tuple:
+    mode, residual = args  # RENDER fills the images, GRADIENT the per-voxel gradients
+    unused = np.zeros((values.shape[0], 1, 1, 1))
+    if mode == RENDER:
+        return mode, values, np.zeros((1, 1, 1)), unused, events
+    return mode, unused, residual, values, events
+
+
+def _images_shape(k: KernelInputs, args: tuple) -> tuple[int, ...]:
+    return (k.cams.position.shape[0], k.cams.nrows, k.cams.ncols)
+
+
+def _voxels_shape(k: KernelInputs, args: tuple) -> tuple[int, ...]:
+    return tuple(k.grid.extinction.shape[1:])
+
+
+#: How an executor may split a batch kernel's work (see :mod:`cloudct.distributed.batches`).
+BY_BATCHES = "batches"  # ranges of batches, each a shifted range of sample indices
+BY_VIEWS = "views"  # ranges of views of every batch (indices depend on the batch count)
+EACH_BATCH = "each batch"  # one batch at a time, in the rounds of one process
+
+
+@dataclass(frozen=True)
+class BatchKernel:
+    """One kind of path the engine traces, on both back ends.
+
+    The CPU batch kernel ``cpu`` (numba, parallel over batches) is called as ``cpu(*head(k,
+    sampling, per_batch), first, last, *tail(args, values, events))``, the CUDA launcher
+    named ``cuda`` (a class of :mod:`cloudct.mc.cuda_kernels`, imported only then) as
+    ``Launcher(k, rr_depth, rr_survival, seed, per_batch, *tail(args, values, events))``;
+    both add the batch sums to ``values`` (``float64[batches, *shape(k, args)]``) and the path
+    vertices to ``events``. ``args`` are the kernel's own inputs (named in
+    :data:`BATCH_KERNELS`). ``split(args)`` says how an executor may split the work (one of
+    :data:`BY_BATCHES`, :data:`BY_VIEWS`, :data:`EACH_BATCH`; ``splits``: all it may say);
+    ``executors``: whether it runs on one at all; ``unit``: what one sample is, for progress
+    bars; ``thread``: what one CUDA thread traces."""
+
+    name: str
+    unit: str
+    cpu: Callable
+    cuda: str
+    thread: str
+    head: Callable[[KernelInputs, Sampling, int], tuple]
+    tail: Callable[[tuple, np.ndarray, np.ndarray], tuple]
+    shape: Callable[[KernelInputs, tuple], tuple[int, ...]]
+    splits: tuple[str, ...]
+    split: Callable[[tuple], str] = lambda args: BY_BATCHES
+    executors: bool = True
+
+
+#: The batch kernels by name; their ``args``: forward (mode RENDER or GRADIENT, residual),
+#: sensors (the flux tallies' array, float64[batches, 1, 1, NFLUX]), backward (),
+#: camera-gradient (estimator code, probes, quadratic, mis, residual, alias table).
+BATCH_KERNELS: dict[str, BatchKernel] = {
+    r.name: r for r in (
+        BatchKernel("forward", "photon", forward_batches, "ForwardLauncher",
+                    "forward photon (GRADIENT: two passes, the second sorted by path length)",
+                    _forward_head, _forward_tail,
+                    lambda k, a: (_images_shape if a[0] == RENDER else _voxels_shape)(k, a),
+                    (BY_BATCHES,)),
+        BatchKernel("sensors", "photon", sensor_batches, "SensorLauncher",
+                    "forward photon, with flux tallies", _forward_head,
+                    lambda a, values, events: (values, a[0], events), _images_shape,
+                    (BY_BATCHES,), executors=False),
+        BatchKernel("backward", "sample/px", backward_batches, "BackwardLauncher",
+                    "backward pixel sample", _camera_head,
+                    lambda a, values, events: (values, events), _images_shape,
+                    (BY_VIEWS,), lambda a: BY_VIEWS),
+        BatchKernel("camera-gradient", "sample", camera_gradient_batches,
+                    "CameraGradientLauncher", "DRT or sample-matching pixel sample",
+                    _camera_head, lambda a, values, events: (*a, values, events),
+                    _voxels_shape, (BY_BATCHES, EACH_BATCH),
+                    lambda a: BY_BATCHES if a[-1].pixel.size else EACH_BATCH),
+    )
+}
+
+
+def batch_runner(
+    kernel: str, backend: str, k: KernelInputs, sampling: Sampling, per_batch: int,
+    args: tuple, values: np.ndarray, events: np.ndarray,
+):
+    """What :func:`run_in_rounds` calls to trace batch kernel ``kernel`` on a resolved
+    ``backend`` (see :class:`BatchKernel`)."""
+    record = BATCH_KERNELS[kernel]
+    tail = record.tail(args, values, events)
+    if backend == "cuda":
+        from cloudct.mc import cuda_kernels
+
+        launcher = getattr(cuda_kernels, record.cuda)
+        return launcher(k, sampling.rr_depth, sampling.rr_survival, sampling.seed, per_batch,
+                        *tail)
+    return _CPURunner(record.cpu, record.head(k, sampling, per_batch), tail)
+
+
+def batch_kernel_table() -> str:
+    """The batch kernels of :data:`BATCH_KERNELS` as the Markdown table of
+    ``docs/architecture.md`` (a test keeps the page equal to it)."""
+    lines = ["| batch kernel | CPU (numba) | CUDA launcher | one CUDA thread per | executors "
+             "split it by |", "|" + " --- |" * 5]
+    for r in BATCH_KERNELS.values():
+        split = " or ".join(r.splits)
+        lines.append(f"| `{r.name}` | `{r.cpu.py_func.__name__}` | `{r.cuda}` | {r.thread} | "
+                     f"{split if r.executors else 'this process only'} |")
+    return "\n".join(lines) + "\n"
+
+
+def batch_means(
+    kernel: str, k: KernelInputs, args: tuple, *, per_batch: int, sampling: Sampling,
+    progress: bool | None = None, executor: BatchExecutor | None = None, desc: str = "",
+) -> tuple[np.ndarray, dict]:
+    """The batch means of batch kernel ``kernel`` (float64[batches, ...]: each batch's sum
+    over its ``per_batch`` samples, divided by ``per_batch``) and the run's ``info`` (path
+    vertices "events", "wall_time", "backend"; an executor adds its bookkeeping), traced
+    in this process on ``sampling.backend`` or by ``executor``, with bitwise the same
+    values for the same seed."""
+    record = BATCH_KERNELS[kernel]
+    if executor is not None:
+        if not record.executors:
+            raise ValueError(f"the {kernel} kernel runs in this process only (executor=None)")
+        sums, events, info = check_executor(executor).batch_sums(
+            kernel, k, args, per_batch=per_batch, sampling=sampling, progress=progress,
+            desc=desc or kernel,
+        )
+    else:
+        backend = resolve_backend(sampling.backend)
+        sums = np.zeros((sampling.batches, *record.shape(k, args)))
+        events = np.zeros(sampling.batches, dtype=np.int64)
+        run = batch_runner(kernel, backend, k, sampling, per_batch, args, sums, events)
+        wall = run_in_rounds(run, per_batch, sampling.batches, progress, unit=record.unit,
+                             desc=desc or kernel, max_rounds=run.max_rounds)
+        info = {"wall_time": wall, "backend": backend}
+    return sums / per_batch, {"events": int(events.sum()), **info}
