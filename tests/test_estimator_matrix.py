@@ -1,15 +1,17 @@
 """The matrix of what each gradient estimator supports (cloudct.mc.gradient.ESTIMATORS and
 its ``support_table``) and the batch kernels that trace them (cloudct.mc.estimate.
 BATCH_KERNELS): the pages that show them are the registries', and every cell is walked on
-a small medium, on the CPU and in this process: a supported combination gives a finite
-gradient that is not zero, a refused one stops with its reason and an alternative. Every
-estimator also runs through the executors' one entry point (``batch_sums`` by kernel name),
-bitwise as in this process.
+a small medium: a supported combination gives a finite gradient that is not zero (on the
+CUDA back end, through the ``backend`` fixture of conftest.py: the CPU's, to rounding), a
+refused one stops with its reason and an alternative. Every estimator also runs through
+the executors' one entry point (``batch_sums`` by kernel name), bitwise as in this
+process.
 
 Agreement with references is tested per estimator elsewhere (test_drt.py,
 test_sample_matching.py, test_score_gradient.py, test_transmittance_gradient.py,
-test_sensors.py for orthographic cameras); the CUDA cells run in test_cuda_sim.py and the
-Dask cells in test_distributed.py.
+test_sensors.py for orthographic cameras); the CUDA kernels' finer checks (bitwise with
+one thread per block, the replays) in test_cuda_sim.py and the Dask cells in
+test_distributed.py.
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ from cloudct.retrieval.config import RetrievalConfig
 
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "architecture.md"
 #: each family's mode in the walk: the linear mix below 1, where its flight density jumps
+#: a refusal names what is not implemented and the alternative
+REFUSED = "not implemented.*(use|is differentiated)"
 MODES = {"exponential": None, "linear-mix": 0.5, "gamma": 2.0}
 
 
@@ -115,23 +119,40 @@ def small_case(projection: str):
     return medium, Scene([cam], Sun(20.0, 300.0), "open", 0.2), residual
 
 
-@pytest.mark.parametrize("projection", PROJECTIONS)
-@pytest.mark.parametrize("family", list(FAMILIES))
-@pytest.mark.parametrize("name", list(ESTIMATORS))
-def test_every_cell_runs_or_is_refused_with_its_reason(name, family, projection):
-    record = ESTIMATORS[name]
-    medium, scene, residual = small_case(projection)
-    if MODES[family] is not None:
-        medium = with_transmittance(medium, family, MODES[family])
-    assert projection in record.projections
-    run = dict(estimator=name, photons=2_000, seed=1, batches=4)
-    if family in record.transmittances:
-        mean, error, info = gradient_estimate(medium, scene, residual, **run)
-        assert np.isfinite(mean).all() and np.isfinite(error).all()
-        assert np.abs(mean).max() > 0.0 and info["estimator"] == name
-    else:
-        with pytest.raises(ValueError, match="not implemented.*(use|is differentiated)"):
-            gradient_estimate(medium, scene, residual, **run)
+def test_the_matrix_on_each_back_end(backend):
+    """Every cell of the matrix (estimator x transmittance x camera) on ``backend``: on the
+    CPU each supported cell gives a finite, non-zero gradient; on the CUDA back end (the
+    simulator on CI) each gives the CPU's gradient and standard error for the same seed, to
+    float64 rounding (the same photons, added in another order); a refused cell stops there
+    with its reason too."""
+    assert backend in ESTIMATORS["score"].backends
+    run = dict(photons=600, seed=4, batches=4)
+    for name, record in ESTIMATORS.items():
+        for family in FAMILIES:
+            for projection in PROJECTIONS:
+                medium, scene, residual = small_case(projection)
+                if MODES[family] is not None:
+                    medium = with_transmittance(medium, family, MODES[family])
+                cell = f"{name}, {family}, {projection}"
+                assert projection in record.projections, cell
+                if family not in record.transmittances:
+                    with pytest.raises(ValueError, match=REFUSED):
+                        gradient_estimate(medium, scene, residual, estimator=name,
+                                          backend=backend, **run)
+                    continue
+                mean, error, info = gradient_estimate(medium, scene, residual, estimator=name,
+                                                      backend=backend, **run)
+                assert info["backend"] == backend and info["estimator"] == name, cell
+                assert np.isfinite(mean).all() and np.isfinite(error).all(), cell
+                assert np.abs(mean).max() > 0.0, cell
+                if backend != "cpu":
+                    cpu_mean, cpu_error, _ = gradient_estimate(medium, scene, residual,
+                                                               estimator=name, **run)
+                    scale = np.abs(cpu_mean).max()
+                    np.testing.assert_allclose(mean, cpu_mean, rtol=1e-10, atol=1e-12 * scale,
+                                               err_msg=cell)
+                    np.testing.assert_allclose(error, cpu_error, rtol=1e-8,
+                                               atol=1e-10 * scale, err_msg=cell)
 
 
 @pytest.mark.parametrize("name", list(ESTIMATORS))

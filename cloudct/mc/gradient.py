@@ -341,7 +341,11 @@ def gradient_estimate(
     ``"sm"`` trace camera paths: ``ceil(photons / n)`` samples per pixel for the n pixels
     whose residual is not zero, drawn per pixel (``pixel_sampling="uniform"``) or, as many
     in all, in proportion to |residual| (``"residual"``; :mod:`cloudct.mc.pixel_sampling`).
-    An ``executor`` traces the batches of any of them elsewhere (bitwise the same result).
+    Uniform pixel sampling rounds each pixel's samples up to a multiple of ``batches``, so
+    with fewer than ``batches`` samples per pixel it traces up to ``batches`` times more
+    paths than asked (``info["photons"]`` says how many); residual-drawn pixels round the
+    total only. An ``executor`` traces the batches of any of them elsewhere (bitwise the
+    same result).
 
     Returns ``(mean, std_error, info)``; ``info`` holds the estimator, the paths traced
     and the wall time in seconds.
