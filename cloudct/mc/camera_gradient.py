@@ -21,9 +21,10 @@ from cloudct.mc.pixel_sampling import draw_pixel
 from cloudct.mc.random import DOMAIN_PIXEL_TABLE, stream_start
 from cloudct.mc.sample_matching import sample_matching_pixel_sample
 
-#: Estimator codes of the kernels.
+#: Estimator codes of the kernels, and their names in progress bars.
 DRT = 0
 SAMPLE_MATCHING = 1
+TITLES = {DRT: "DRT", SAMPLE_MATCHING: "sample matching"}
 
 
 @njit(cache=True)

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
-from cloudct.mc.camera_gradient import DRT, SAMPLE_MATCHING
+from cloudct.mc.camera_gradient import DRT, SAMPLE_MATCHING, TITLES
 from cloudct.mc.cameras import PROJECTIONS
 from cloudct.mc.estimate import (
     Sampling,
@@ -120,7 +120,7 @@ def _camera_gradient(
     args = (estimator, int(probes), bool(quadratic), bool(mis), residual, table)
     gradients, run = batch_means(
         "camera-gradient", k, args, per_batch=per_batch, sampling=sampling, progress=progress,
-        executor=executor, desc="DRT" if estimator == DRT else "sample matching",
+        executor=executor, desc=TITLES[estimator],
     )
     samples = per_batch * batches * (1 if table.pixel.size else pixels)
     info = {"photons": samples, **run, "pixel_sampling": pixel_sampling}
