@@ -85,6 +85,16 @@ def compare(cpu, gpu):
     cpu, gpu = np.asarray(cpu), np.asarray(gpu)
     return {"bitwise": bool(np.array_equal(cpu, gpu)), "max_diff": float(np.abs(cpu - gpu).max()),
             "scale": float(np.abs(cpu).max()), "cpu": cpu.tolist(), "gpu": gpu.tolist()}
+
+
+def on_both(call):
+    # compare() of call(backend)[0] on the CPU and on CUDA (a render's images or a
+    # gradient's mean), with both runs' path vertices and the back end CUDA's ran on
+    runs = [call(b) for b in ("cpu", "cuda")]
+    case = compare(runs[0][0], runs[1][0])
+    case["events"] = [runs[0][-1]["events"], runs[1][-1]["events"]]
+    case["backend"] = runs[1][-1]["backend"]
+    return case
 """
 
 SIMULATOR_SCRIPT = SCENES + COMPARE + """
@@ -107,31 +117,21 @@ for tpb in (1, 32):
         for label, method, n, aim in (("forward", "forward", 256, None),
                                       ("aimed", "forward", 256, 0.3),
                                       ("backward", "backward", 8, None)):
-            runs = [render_batches(medium, scene, photons=n, batches=4, method=method,
-                                   aim_fraction=aim, progress=False, backend=b)
-                    for b in ("cpu", "cuda")]
-            case = compare(runs[0][0], runs[1][0])
-            case["events"] = [runs[0][1]["events"], runs[1][1]["events"]]
-            case["backend"] = runs[1][1]["backend"]
-            out[f"{label}/{name}/tpb{tpb}"] = case
+            out[f"{label}/{name}/tpb{tpb}"] = on_both(lambda b: render_batches(
+                medium, scene, photons=n, batches=4, method=method, aim_fraction=aim,
+                progress=False, backend=b))
     for label, method, n in (("powerlaw", "forward", 256), ("powerlaw-backward", "backward", 8)):
-        runs = [render_batches(power_law, scenes["open"], photons=n, batches=4, method=method,
-                               progress=False, backend=b) for b in ("cpu", "cuda")]
-        case = compare(runs[0][0], runs[1][0])
-        case["events"] = [runs[0][1]["events"], runs[1][1]["events"]]
-        case["backend"] = runs[1][1]["backend"]
-        out[f"{label}/open/tpb{tpb}"] = case
+        out[f"{label}/open/tpb{tpb}"] = on_both(lambda b: render_batches(
+            power_law, scenes["open"], photons=n, batches=4, method=method, progress=False,
+            backend=b))
     for sort in (False, True):
         ck.SORT_PATHS = sort
         for label, aim, which in (("gradient", None, medium), ("gradient-aimed", 0.3, medium),
                                   ("gradient-powerlaw", None, power_law)):
-            runs = [score_function_gradient(which, scenes["open"], residual, photons=256,
-                                            batches=4, aim_fraction=aim, progress=False,
-                                            backend=b)
-                    for b in ("cpu", "cuda")]
-            case = compare(runs[0][0], runs[1][0])
-            case["events"] = [runs[0][2]["events"], runs[1][2]["events"]]
-            out[f"{label}/sort{int(sort)}/tpb{tpb}"] = case
+            out[f"{label}/sort{int(sort)}/tpb{tpb}"] = on_both(
+                lambda b: score_function_gradient(
+                    which, scenes["open"], residual, photons=256, batches=4, aim_fraction=aim,
+                    progress=False, backend=b))
 
 from cloudct.mc.gradient import drt_gradient, sample_matching_gradient
 camera_side = {
@@ -145,10 +145,8 @@ camera_side = {
 for tpb in (1, 32):
     ck.THREADS_PER_BLOCK = tpb
     for name, (estimate, kw) in camera_side.items():
-        runs = [estimate(medium, scenes["open"], residual, samples_per_pixel=4, batches=4,
-                         backend=b, **kw) for b in ("cpu", "cuda")]
-        out[f"{name}/tpb{tpb}"] = compare(runs[0][0], runs[1][0])
-        out[f"{name}/tpb{tpb}"]["events"] = [runs[0][2]["events"], runs[1][2]["events"]]
+        out[f"{name}/tpb{tpb}"] = on_both(lambda b: estimate(
+            medium, scenes["open"], residual, samples_per_pixel=4, batches=4, backend=b, **kw))
 
 # orthographic cameras: renders, the score-function gradient (aimed paths, re-traced by
 # path length) and the camera-side gradients, blocks of 32 threads
@@ -158,22 +156,16 @@ for name, scene in ortho_scenes.items():
     for label, method, n, aim in (("forward", "forward", 256, None),
                                   ("aimed", "forward", 256, 0.3),
                                   ("backward", "backward", 8, None)):
-        runs = [render_batches(medium, scene, photons=n, batches=4, method=method,
-                               aim_fraction=aim, progress=False, backend=b)
-                for b in ("cpu", "cuda")]
-        out[f"orthographic-{label}/{name}"] = case = compare(runs[0][0], runs[1][0])
-        case["events"] = [runs[0][1]["events"], runs[1][1]["events"]]
-        case["backend"] = runs[1][1]["backend"]
+        out[f"orthographic-{label}/{name}"] = on_both(lambda b: render_batches(
+            medium, scene, photons=n, batches=4, method=method, aim_fraction=aim,
+            progress=False, backend=b))
     for label, estimate, kw in (
         ("score", score_function_gradient, {"photons": 256, "aim_fraction": 0.3}),
         ("drt", drt_gradient, {"samples_per_pixel": 4}),
         ("sm", sample_matching_gradient, {"samples_per_pixel": 4}),
     ):
-        runs = [estimate(medium, scene, res, batches=4, backend=b, progress=False, **kw)
-                for b in ("cpu", "cuda")]
-        out[f"orthographic-{label}/{name}"] = case = compare(runs[0][0], runs[1][0])
-        case["events"] = [runs[0][2]["events"], runs[1][2]["events"]]
-        case["backend"] = runs[1][2]["backend"]
+        out[f"orthographic-{label}/{name}"] = on_both(lambda b: estimate(
+            medium, scene, res, batches=4, backend=b, progress=False, **kw))
 
 # domain-mean fluxes and radiance probes: the render's photons with their flux tallies
 from cloudct.mc.sensors import FLUX_SHARES, domain_means
