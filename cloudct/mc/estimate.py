@@ -337,8 +337,9 @@ def batch_means(
     """The batch means of batch kernel ``kernel`` (float64[batches, ...]: each batch's sum
     over its ``per_batch`` samples, divided by ``per_batch``) and the run's ``info`` (path
     vertices "events", "wall_time", "backend"; an executor adds its bookkeeping), traced
-    in this process on ``sampling.backend`` or by ``executor``, with bitwise the same
-    values for the same seed."""
+    in this process on ``sampling.backend`` or by ``executor``: for the same seed, the same
+    values wherever the batches run (bitwise on the CPU, here or on Dask workers; to
+    rounding on a GPU, whose threads add into an element in another order)."""
     record = BATCH_KERNELS[kernel]
     if executor is not None:
         if not record.executors:
