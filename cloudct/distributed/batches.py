@@ -270,6 +270,14 @@ def run_tasks(
     return values, parts, stats
 
 
+def _holds_arrays(obj: Any) -> bool:
+    """Whether ``obj`` (nested tuples) holds an array: only then is it worth scattering
+    once instead of sending it with every task (a render's arguments hold none)."""
+    if isinstance(obj, np.ndarray):
+        return True
+    return isinstance(obj, tuple) and any(_holds_arrays(v) for v in obj)
+
+
 def distributed_batch_sums(
     ex: DaskExecutor, kernel: str, k, args: tuple, *, per_batch: int, sampling: Sampling,
     progress: bool | None = False, desc: str = "",
@@ -277,11 +285,12 @@ def distributed_batch_sums(
     """Per-batch sums of a call of the batch kernel ``kernel`` traced on the workers, one
     range of batches (or of views, :func:`batch_task`) per task, with the per-batch path
     vertices and the call's bookkeeping. The kernel inputs are scattered once to every
-    worker (cached by content for the next call), the kernel's ``args`` once per call."""
+    worker (cached by content for the next call), the kernel's ``args`` once per call where
+    they hold arrays (a residual, an alias table)."""
     started = time.perf_counter()
     record = BATCH_KERNELS[kernel]
     k_future, sent = ex.share(k, cache=True)
-    args_future, more = ex.share(args)
+    args_future, more = ex.share(args) if _holds_arrays(args) else (args, 0)
     task_args = (kernel, k_future, sampling, per_batch, args_future)
     batches = sampling.batches
     if record.split(args) == BY_VIEWS:
