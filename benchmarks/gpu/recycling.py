@@ -96,7 +96,7 @@ def markdown(result: dict) -> str:
         "",
         f"{result['device']}; {result['store']['paths']:,} paths "
         f"({result['store']['records'] / result['store']['paths']:.2f} records per path), "
-        f"{result['storage']} storage, {result['batches']} batches, "
+        f"{result['settings']['storage']} storage, {result['settings']['batches']} batches, "
         f"{result['threads_per_block']} threads per block.",
         "",
         "| replay | store | wall min (s) | wall median (s) | paths/s | events/s |",
