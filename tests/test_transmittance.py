@@ -165,10 +165,12 @@ def test_bad_modes_and_unsupported_estimators_are_refused():
         validate_medium(slab(family="fractal", mode=1.0))
     scene = Scene([Camera((0.5, 0.5, 3.0), (0.5, 0.5, 0.5), (0, 1, 0), fov=30, nrows=4,
                           ncols=4)], Sun(0.0, 0.0), "periodic")
-    for estimator in (drt_gradient, sample_matching_gradient):
-        with pytest.raises(ValueError, match="non-exponential transmittance"):
-            estimator(slab(family="gamma", mode=2.0), scene, np.ones((1, 4, 4)),
-                      samples_per_pixel=2, batches=2, progress=False)
+    with pytest.raises(ValueError, match="non-exponential transmittance.*use DRT"):
+        sample_matching_gradient(slab(family="gamma", mode=2.0), scene, np.ones((1, 4, 4)),
+                                 samples_per_pixel=2, batches=2, progress=False)
+    with pytest.raises(ValueError, match="linear-mix transmittance are not implemented"):
+        drt_gradient(slab(family="linear-mix", mode=0.5), scene, np.ones((1, 4, 4)),
+                     samples_per_pixel=2, batches=2, progress=False)
     # path recycling records and replays exponential paths only
     with pytest.raises(ValueError, match="non-exponential transmittance"):
         record_paths(slab(family="gamma", mode=2.0), scene, photons=8, batches=2)

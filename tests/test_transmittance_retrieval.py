@@ -71,8 +71,10 @@ def test_the_settings_of_the_assumption_are_checked():
     model = RetrievalConfig(transmittance="medium")
     assert model.estimator == ("score",) and model.pixel_sampling == "uniform"
     assert RetrievalConfig().estimator == ("sm",)
+    assert RetrievalConfig(transmittance="medium", estimator=("drt",)).estimator == ("drt",)
     for bad in (dict(estimator=("sm",)), dict(recycling="fixed"), dict(optimizer="lbfgsb")):
-        with pytest.raises(ValueError, match="differentiated by the path score function"):
+        with pytest.raises(ValueError, match="differentiated by the estimators 'score' or "
+                                             "'drt' alone"):
             RetrievalConfig(transmittance="medium", **bad)
     with pytest.raises(ValueError, match="transmittance must be one of"):
         RetrievalConfig(transmittance="gamma")

@@ -386,7 +386,7 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
     p.add_argument("--transmittance", choices=TRANSMITTANCE,
                    help="the transmittance the retrieval assumes: exponential, or medium: the "
                         "model and mode field the measurements record (docs/transmittance.md;"
-                        " differentiated by the score function, without recycling) "
+                        " differentiated by the score function or DRT, without recycling) "
                         f"(default {c.transmittance})")
     p.add_argument("--saturation-window", type=int,
                    help="iterations of the loss a plateau is judged on "

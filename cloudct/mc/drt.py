@@ -104,6 +104,20 @@ the tracking is T itself, the weight sum_i a_i = C is exact (zero variance), t' 
 exactly T / C, the cost is one walk to the exit (the price of one NEE transmittance, with no
 majorant to choose), and empty voxels are sampled like any other.
 
+Under the power law (:mod:`cloudct.physics.transmittance`)
+----------------------------------------------------------
+The free flights sample the collision density T_pdf = beta phi(u) = beta h T (h the hazard)
+instead of beta T, and its derivative w.r.t. beta_v is 1_v phi(u) - c ds/dbeta_v T_pdf:
+
+(a)  the attenuation deposits of a segment and of an NEE ray are ``march``'s with the
+     walk's ``scale`` (c Q_n for a flight ending in a collision, Q_n otherwise), each
+     walked first for it, as in the score function (1 for the exponential: unchanged);
+(1a) free-flight part: phi K / (beta phi) = K / beta, unchanged;
+(1a) DRT part: the in-scattering integrand is phi K = h T K, so the point drawn with
+     density T / C carries the weight C h(x'). Inside a voxel of mode m entered at
+     equivalent depth s, T(t) / T_in = (1 + kappa t)^(-1/m), kappa = m beta e^(-m s), whose
+     integral and its inverse are closed forms (:func:`power_law_piece`): C stays exact.
+
 Multiple importance sampling (Sec. 4.6, Eqs. 21-22)
 ---------------------------------------------------
 Power heuristic of p_DT = beta T against p_DRT = T / C with C replaced by a fixed length
@@ -152,10 +166,23 @@ from cloudct.physics.mixing import (
     total_extinction,
 )
 from cloudct.physics.phase import phase_function, sample_phase_cosine, scatter_direction
+from cloudct.physics.transmittance import EXPONENTIAL, GAMMA, depth_step
 
 INV_PI = 1.0 / math.pi
 TWO_PI = 2.0 * math.pi
 CLOUD = 1  # particle type whose extinction is differentiated
+
+
+@njit(cache=True, inline="always")
+def power_law_piece(kappa, mode, length):
+    """int_0^d (1 + kappa t)^(-1/m) dt / d and log1p(kappa d): the mean relative
+    transmittance T(t) / T_in over a voxel piece of length d = ``length`` under the power law
+    of mode m (kappa = m beta h_in, module docstring), written with expm1 and log1p so that
+    it stays exact as m -> 1 (the integral's logarithm) and as kappa d -> 0."""
+    y = math.log1p(kappa * length)
+    x = (1.0 - 1.0 / mode) * y
+    mean = (math.expm1(x) / x if x != 0.0 else 1.0) * y / (kappa * length)
+    return mean, y
 
 
 @njit(cache=True)
@@ -163,18 +190,25 @@ def sample_transmittance(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic, sta
     """A point on the ray from (px, py, pz) along (ux, uy, uz), drawn with density T(t) / C.
 
     The ray runs to where it leaves the medium (or reaches the bottom); C = int T dt over it.
-    Each voxel piece is proposed to a weighted reservoir with its exact area
-    T_in (1 - exp(-beta d)) / beta, then the distance inside the chosen piece is drawn
-    proportional to exp(-beta t) (exact ratio tracking, see the module docstring).
+    Each voxel piece is proposed to a weighted reservoir with its exact area int T dt
+    (T_in (1 - exp(-beta d)) / beta for the exponential), then the distance inside the chosen
+    piece is drawn proportional to T (exact ratio tracking, see the module docstring; under
+    the power law, the section on it).
 
-    Returns ``(C, qx, qy, qz, qix, qiy, qiz, state)``; C = 0 (no point) for an empty chord.
+    Returns ``(C, h, qx, qy, qz, qix, qiy, qiz, state)``; h is the transmittance's hazard
+    -f'(u) / f(u) at the point (1 for the exponential), C = 0 (no point) for an empty chord.
     """
+    family = grid.transmittance_family[0]
     trans = 1.0
+    depth = 0.0  # the equivalent optical depth -log T (non-exponential only)
     total = 0.0
     rx = ry = rz = 0.0
     rix = riy = riz = -1
     rbeta = 0.0
     rlen = 0.0
+    rkappa = 0.0  # the chosen piece's kappa (power law), 0 where it is exponential
+    rmode = 0.0
+    rhazard = 1.0
     xe = grid.x_edges
     ye = grid.y_edges
     ze = grid.z_edges
@@ -185,7 +219,19 @@ def sample_transmittance(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic, sta
         t, axis = next_face(xe, ye, ze, px, py, pz, ux, uy, uz, ix, iy, iz)
         beta = total_extinction(grid, ix, iy, iz)
         x = beta * t
-        area = trans * t * (-math.expm1(-x) / x) if x > 0.0 else trans * t
+        kappa = 0.0
+        mode = 0.0
+        hazard = 1.0  # h at the piece's entry, e^(-m s) under the power law
+        if family != EXPONENTIAL:
+            mode = grid.transmittance_mode[ix, iy, iz]
+            if family == GAMMA and mode > 0.0:
+                hazard = math.exp(-mode * depth)
+                kappa = mode * beta * hazard
+        if kappa > 0.0:
+            mean, _ = power_law_piece(kappa, mode, t)
+            area = trans * t * mean
+        else:
+            area = trans * t * (-math.expm1(-x) / x) if x > 0.0 else trans * t
         if area > 0.0:
             total += area
             u, state = uniform(state)
@@ -194,7 +240,14 @@ def sample_transmittance(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic, sta
                 rix, riy, riz = ix, iy, iz
                 rbeta = beta
                 rlen = t
-        trans *= math.exp(-x)
+                rkappa = kappa
+                rmode = mode
+                rhazard = hazard
+        if family == EXPONENTIAL:
+            trans *= math.exp(-x)
+        else:
+            depth = depth_step(family, depth, mode, x)[0]
+            trans = math.exp(-depth)
         px += t * ux
         py += t * uy
         pz += t * uz
@@ -209,15 +262,23 @@ def sample_transmittance(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic, sta
             if status != INSIDE:
                 break
     if rix < 0:
-        return 0.0, 0.0, 0.0, 0.0, 0, 0, 0, state
+        return 0.0, 1.0, 0.0, 0.0, 0.0, 0, 0, 0, state
     u, state = uniform(state)
-    x = rbeta * rlen
-    if x > 0.0:
-        s = -math.log1p(u * math.expm1(-x)) / rbeta
+    hazard = rhazard  # constant along a piece without extinction
+    if rkappa > 0.0:  # invert int_0^s (1 + kappa t)^(-1/m) dt = u x the piece's area
+        a = 1.0 - 1.0 / rmode
+        _, y = power_law_piece(rkappa, rmode, rlen)
+        y = math.log1p(u * math.expm1(a * y)) / a if a != 0.0 else u * y
+        s = math.expm1(y) / rkappa
+        hazard = rhazard / (1.0 + rkappa * min(s, rlen))
     else:
-        s = u * rlen
+        x = rbeta * rlen
+        if x > 0.0:
+            s = -math.log1p(u * math.expm1(-x)) / rbeta
+        else:
+            s = u * rlen
     s = min(s, rlen)
-    return total, rx + s * ux, ry + s * uy, rz + s * uz, rix, riy, riz, state
+    return total, hazard, rx + s * ux, ry + s * uy, rz + s * uz, rix, riy, riz, state
 
 
 @njit(cache=True)
@@ -259,6 +320,7 @@ def trace_path(
     point, voxel and direction (``found`` False when no segment had throughput).
     """
     sx, sy, sz = -sun.direction[0], -sun.direction[1], -sun.direction[2]  # towards the sun
+    family = grid.transmittance_family[0]
     radiance = 0.0  # prefix sum of the E_k
     throughput = 1.0
     depth = 0
@@ -276,10 +338,16 @@ def trace_path(
             if v * res_w < throughput:
                 found = True
                 rx, ry, rz, rix, riy, riz, rux, ruy, ruz = px, py, pz, ix, iy, iz, ux, uy, uz
-            # Eq. (10) / Eq. (6): every later contribution is attenuated by this segment
+            # Eq. (10) / Eq. (6): every later contribution is attenuated by this segment;
+            # under the power law the segment is walked first for its deposits' scale
+            weight = -residual * (total - radiance)
+            if family != EXPONENTIAL and weight != 0.0:
+                weight *= march(
+                    grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
+                )[9]
             status, px, py, pz, ix, iy, iz, _, _, _ = march(
                 grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic, gradient,
-                -residual * (total - radiance),
+                weight,
             )
         else:
             status, px, py, pz, ix, iy, iz, _, _, _ = march(
@@ -289,15 +357,16 @@ def trace_path(
             break
         if status == BOTTOM and ground_albedo <= 0.0:
             break
-        tau_sun = optical_depth_to_exit(grid, px, py, pz, sx, sy, sz, ix, iy, iz, periodic)
-        t_sun = math.exp(-tau_sun)
+        sun_walk = march(grid, px, py, pz, sx, sy, sz, ix, iy, iz, INF, periodic)
+        t_sun = math.exp(-sun_walk[7])
+        sun_scale = sun_walk[9]  # of the NEE attenuation's deposits (1: exponential)
         if status == BOTTOM:
             e = throughput * ground_albedo * sz * INV_PI * t_sun
             radiance += e
             if replay and e != 0.0:
                 march(
                     grid, px, py, pz, sx, sy, sz, ix, iy, iz, INF, periodic, gradient,
-                    -residual * e,
+                    -residual * e * sun_scale,
                 )
             throughput *= ground_albedo
             ux, uy, uz, state = lambertian_bounce(state)
@@ -313,7 +382,7 @@ def trace_path(
                 if e != 0.0:  # NEE attenuation
                     march(
                         grid, px, py, pz, sx, sy, sz, ix, iy, iz, INF, periodic, gradient,
-                        -residual * e,
+                        -residual * e * sun_scale,
                     )
                 w_dt = free_flight_mis_weight(grid, ix, iy, iz, mis_length)
                 alpha_c = grid.albedo[CLOUD, ix, iy, iz]
@@ -429,7 +498,7 @@ def drt_pixel_sample(
     if not found:
         return vertices
     # DRT in-scattering sample on the chosen segment, Eqs. (13), (16), (19)
-    c, qx, qy, qz, qix, qiy, qiz, side = sample_transmittance(
+    c, hazard, qx, qy, qz, qix, qiy, qiz, side = sample_transmittance(
         grid, rx, ry, rz, rux, ruy, ruz, rix, riy, riz, periodic, side
     )
     if c <= 0.0:
@@ -444,5 +513,7 @@ def drt_pixel_sample(
         qiz, rux, ruy, ruz, side, gradient, mis_length,
     )
     value += diffuse
-    add_to(gradient, qix, qiy, qiz, residual * res_w * c * w_drt * alpha_c * value)
+    # the in-scattering's density along the ray is the collision density per unit
+    # extinction, T h (power law section of the module docstring; h = 1: exponential)
+    add_to(gradient, qix, qiy, qiz, residual * res_w * c * hazard * w_drt * alpha_c * value)
     return vertices + more

@@ -110,7 +110,10 @@ def _camera_gradient(
     sampling.per_batch(samples_per_pixel)  # a positive count
     residual = check_residual(residual, scene)
     k = kernel_inputs(medium, scene, aim_fraction=0.0)  # camera paths aim at no camera
-    require_exponential(k.grid, "DRT and sample-matching gradients")
+    if estimator == SAMPLE_MATCHING:
+        require_exponential(k.grid, "sample-matching gradients",
+                            "use DRT (estimator 'drt') or the path score function")
+    require_smooth_flight_density(k.grid, "DRT gradients")
     pixels = int(np.count_nonzero(residual))
     table = pixel_table(residual, pixel_sampling)
     # per batch: samples of each pixel (uniform), or as many samples in all as
@@ -274,7 +277,8 @@ ESTIMATORS: dict[str, GradientEstimator] = {
                           replayable=True, transmittances=("exponential", "gamma"),
                           run=_score_run),
         GradientEstimator("drt", "differential ratio tracking (camera paths)",
-                          camera_side=True, replayable=False, transmittances=("exponential",),
+                          camera_side=True, replayable=False,
+                          transmittances=("exponential", "gamma"),
                           run=_camera_side_run(drt_gradient)),
         GradientEstimator("sm", "sample matching (camera paths)", camera_side=True,
                           replayable=False, transmittances=("exponential",),

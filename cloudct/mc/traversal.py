@@ -285,28 +285,31 @@ def march(
                 return status, px, py, pz, ix, iy, iz, tau, walked, scale
 
 
-def require_exponential(grid, what: str) -> None:
-    """Refuse ``what`` (DRT, sample matching, path recycling) for a medium whose
-    transmittance is not exponential: those estimators take the derivatives and the replay
-    of exponential paths; the path score function differentiates the model."""
+def require_exponential(
+    grid, what: str,
+    alternative: str = "use the path score function (estimator 'score', no path recycling)",
+) -> None:
+    """Refuse ``what`` (sample matching, path recycling) for a medium whose transmittance is
+    not exponential: those take the derivatives and the replay of exponential paths; the
+    path score function and DRT differentiate the power law. ``alternative`` says what
+    to use instead."""
     if grid.transmittance_family[0] != EXPONENTIAL:
         raise ValueError(
             f"{what} under a non-exponential transmittance (the medium's transmittance "
-            "attribute) are not implemented: use the path score function (estimator "
-            "'score', no path recycling) for the power law, or retrieve under the "
-            "exponential assumption"
+            f"attribute) are not implemented: {alternative} for the power law, or retrieve "
+            "under the exponential assumption"
         )
 
 
 def require_smooth_flight_density(grid, what: str) -> None:
-    """Refuse ``what`` (the path score function) under a linear-mix transmittance with a
+    """Refuse ``what`` (the path score function, DRT) under a linear-mix transmittance with a
     mode below 1: its collision density -f' jumps where the linear part ends (optical
     depth 2 inside a voxel), a point that moves with the extinction, and the score function
     misses the boundary term of that jump (docs/transmittance.md, "Gradients")."""
     if grid.transmittance_family[0] == LINEAR_MIX and np.any(grid.transmittance_mode < 1.0):
         raise ValueError(
             f"{what} under the linear-mix transmittance are not implemented: its collision "
-            "density jumps where the linear part ends, and the score function misses that "
+            "density jumps where the linear part ends, and the gradient estimators miss that "
             "boundary's term (docs/transmittance.md); the power law (transmittance 'gamma') "
             "is differentiated"
         )

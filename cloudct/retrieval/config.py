@@ -176,10 +176,12 @@ class RetrievalConfig:
             )
         if model and (any("gamma" not in e.transmittances for e in records) or quasi_newton
                       or self.recycling != "none"):
+            able = " or ".join(repr(e.name) for e in ESTIMATORS.values()
+                               if "gamma" in e.transmittances)
             raise ValueError(
                 "transmittance 'medium' (a non-exponential model) is differentiated by the "
-                "path score function alone, without stored paths: use the estimator 'score' "
-                "at every stage, recycling 'none' and the optimizer adam or sgd"
+                f"estimators {able} alone, without stored paths: use one of them at every "
+                "stage, recycling 'none' and the optimizer adam or sgd"
             )
         if min(self.stages) < 1:
             raise ValueError(f"stages (pixel blocks) must be >= 1, got {self.stages}")
