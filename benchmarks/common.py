@@ -163,6 +163,28 @@ def error_over_time(result: str | Path, minutes=(5, 15, 30, 60)) -> dict:
             "over_time": marks}
 
 
+def loss_at_the_truth(media: dict, measurements: xr.Dataset, photons: int) -> dict:
+    """The loss (Eq. 41, unit weights) of the true extinction rendered under each
+    assumption (``media``: name -> the truth as that assumption sees it) against the
+    measurements, with each render's and the measurements' own Monte Carlo share of it
+    (their squared standard errors): the loss that remains at the truth when an assumption
+    is wrong."""
+    from cloudct.mc.render import render
+    from cloudct.mc.scene import Scene
+    from cloudct.retrieval.loss import image_loss
+
+    scene = Scene.from_dataset(measurements)
+    measured = measurements["radiance"].values
+    out = {"measurement_noise": 0.5 * float(np.sum(measurements["radiance_std_error"]
+                                                   .values ** 2))}
+    for name, medium in media.items():
+        images = render(medium, scene, photons=photons, seed=3, progress=False)
+        out[name] = image_loss(images["radiance"].values, measured)[0]
+        out[f"{name}_render_noise"] = 0.5 * float(np.sum(images["radiance_std_error"]
+                                                         .values ** 2))
+    return out
+
+
 def over_time_markdown(result: dict) -> str:
     """Epsilon and delta at each mark of :func:`error_over_time`'s result, as a table."""
     rows = [[mark, str(v["iteration"]), f"{v['epsilon']:.3f}", f"{v['delta']:+.3f}"]

@@ -27,22 +27,19 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
 from benchmarks.common import (
     REPO,
     RESULTS,
     error_figure,
     error_over_time,
+    loss_at_the_truth,
     run_command,
     run_header,
     write_result,
 )
-from cloudct.mc.render import render, single_cloud_medium
-from cloudct.mc.scene import Scene
+from cloudct.mc.render import single_cloud_medium
 from cloudct.measurements import load_measurements
 from cloudct.medium import save_medium, with_transmittance
-from cloudct.retrieval.loss import image_loss
 
 FIGURE = REPO / "docs" / "figures" / "transmittance_retrieval.png"
 
@@ -52,23 +49,6 @@ RUNS = {
     "medium_score": ["--transmittance", "medium", "--photons", "200000"],
     "exponential_defaults": [],
 }
-
-
-def loss_at_the_truth(truth, measurements, photons: int) -> dict:
-    """The loss (Eq. 41, unit weights) of the true extinction rendered under each
-    assumption against the measurements, and the measurements' own Monte Carlo share of
-    it (their squared standard errors)."""
-    scene = Scene.from_dataset(measurements)
-    measured = measurements["radiance"].values
-    out = {"measurement_noise": 0.5 * float(np.sum(measurements["radiance_std_error"]
-                                                   .values ** 2))}
-    for name, medium in (("exponential", with_transmittance(truth, "exponential")),
-                         ("medium", truth)):
-        images = render(medium, scene, photons=photons, seed=3, progress=False)
-        out[name] = image_loss(images["radiance"].values, measured)[0]
-        out[f"{name}_render_noise"] = 0.5 * float(np.sum(images["radiance_std_error"]
-                                                         .values ** 2))
-    return out
 
 
 LABELS = {"exponential_score": "exponential (score function)",
@@ -99,7 +79,8 @@ def main() -> None:
         run_command(["carve", f["measurements.nc"], "--medium", f["truth.nc"], "-o",
                      f["init.nc"]], log)
     summary["loss_at_the_truth"] = loss_at_the_truth(
-        truth, load_measurements(f["measurements.nc"]), 2_000_000)
+        {"exponential": with_transmittance(truth, "exponential"), "medium": truth},
+        load_measurements(f["measurements.nc"]), 2_000_000)
     for name in args.runs:
         result = str(out / f"{name}.nc")
         run_command(["retrieve", f["measurements.nc"], "--init", f["init.nc"], "--truth",
