@@ -416,7 +416,8 @@ def test_auto_backend_falls_back_to_cpu_with_a_warning():
         warnings.simplefilter("always")
         auto, info = render_batches(ns["medium"], ns["scenes"]["open"], backend="auto", **kw)
     assert info["backend"] == "cpu"
-    assert [str(w.message) for w in caught if "backend='auto'" in str(w.message)]
+    warned = [w for w in caught if "backend='auto'" in str(w.message)]
+    assert warned and warned[0].filename == __file__  # the caller's line, not the engine's
     cpu, _ = render_batches(ns["medium"], ns["scenes"]["open"], backend="cpu", **kw)
     assert np.array_equal(auto, cpu)
     with pytest.raises(RuntimeError, match="backend='cuda'"):

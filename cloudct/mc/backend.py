@@ -11,7 +11,9 @@ back end; this module imports no estimator.
 from __future__ import annotations
 
 import importlib.util
+import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -53,8 +55,20 @@ def resolve_backend(backend: str) -> str:
         return "cuda"
     if backend == "cuda":
         raise RuntimeError(f"backend='cuda': {reason}")
-    warnings.warn(f"backend='auto': {reason}; running on the CPU", RuntimeWarning, stacklevel=3)
+    warnings.warn(f"backend='auto': {reason}; running on the CPU", RuntimeWarning,
+                  stacklevel=_level_outside_cloudct())
     return "cpu"
+
+
+def _level_outside_cloudct() -> int:
+    """The ``stacklevel`` of a warning issued by this module's caller that points at the
+    first frame outside the cloudct package: the user's line, however deep in the engine
+    the back end was resolved."""
+    package = str(Path(__file__).resolve().parents[1])
+    frame, level = sys._getframe(2), 2
+    while frame is not None and str(Path(frame.f_code.co_filename).resolve()).startswith(package):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def device_description(backend: str) -> str:

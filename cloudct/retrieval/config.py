@@ -59,8 +59,9 @@ class RetrievalConfig:
     photon_budget`); a number fixes them, and with them the iterates, bitwise.
 
     ``transmittance="medium"`` retrieves under the measurements' (non-exponential) model,
-    differentiated by the score function alone (its default estimator there; recycling and
-    L-BFGS-B refused); ``"exponential"`` assumes exp(-tau) (docs/transmittance.md).
+    differentiated by the score function (its default estimator there) or DRT (recycling,
+    L-BFGS-B and sample matching refused); ``"exponential"`` assumes exp(-tau)
+    (docs/transmittance.md).
 
     ``optimizer="lbfgsb"`` makes every iteration a window of L-BFGS-B on the sample-average
     loss of fixed paths (:mod:`cloudct.retrieval.sample_average`): up to ``period``
@@ -125,7 +126,7 @@ class RetrievalConfig:
     # change and step decay
     averaging_decay: float = 0.9  # "ema": weight of the average so far at each iterate
     transmittance: str = "exponential"  # or "medium": the measurements' transmittance model
-    # and mode field (differentiated by the score function only)
+    # and mode field (differentiated by the score function or DRT)
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:

@@ -106,7 +106,7 @@ RUN_KEYS = {k.name: k for k in (
     _run_key("averaging_decay", float, "ema averaging: weight of the average so far at each "
              "iterate"),
     _run_key("transmittance", str, "exponential, or medium: the measurements' transmittance "
-             "model and mode field (estimator score, no recycling)"),
+             "model and mode field (estimator score or drt, no recycling)"),
     _run_key("seed", int, "seed of the photons: the same seed repeats the same iterates"),
     _run_key("checkpoint_every", int, "iterations between checkpoints"),
     _run_key("time_limit", float, "seconds of wall time after which the run stops (unset: "
