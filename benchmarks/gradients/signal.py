@@ -28,7 +28,7 @@ camera paths in all) and ``residual`` for pixels drawn in proportion to |residua
 
     python -m benchmarks gradients.signal [--pixel-blocks 2] \
         [--runs score:200000 drt:200000 sm:200000 sm:200000:residual] [--start MEDIUM.nc] \
-        [--output benchmarks/results/gradient_signal]
+        [--optics hg|mie] [--output benchmarks/results/gradient_signal]
 """
 
 from __future__ import annotations
@@ -84,7 +84,8 @@ def pooled_signal(estimates: list[tuple[np.ndarray, np.ndarray]], target: np.nda
 def markdown(result: dict) -> str:
     lines = [
         f"{result['machine']}, {result['date']}: `{result['command']}`", "",
-        f"start: {result['start'] or 'constant carved hull'}, {result['pixel_blocks']}x"
+        f"{result.get('optics', 'hg')} optics; start: "
+        f"{result['start'] or 'constant carved hull'}, {result['pixel_blocks']}x"
         f"{result['pixel_blocks']} pixel blocks; pooled signal |g|^2 per voxel block size: "
         + ", ".join(f"{vb}: {s['signal']:.3g} +- {s['signal_spread']:.2g}"
                     for vb, s in result["pooled"].items()), "",
@@ -114,11 +115,14 @@ def main() -> None:
     parser.add_argument("--start", default=None,
                         help="evaluate at this medium netCDF (its cloud_mask, where present, "
                              "is the hull) instead of the constant carved start")
+    parser.add_argument("--optics", choices=("hg", "mie"), default="hg",
+                        help="the single cloud's optics, of the truth and the start alike")
     parser.add_argument("--output", default=str(RESULTS / "gradient_signal"))
     args = parser.parse_args()
 
-    truth = single_cloud_medium()
-    measurements = measurements_for(truth, args.measurement_photons, Path(args.work))
+    truth = single_cloud_medium(args.optics)
+    name = "single_cloud" if args.optics == "hg" else f"single_cloud_{args.optics}"
+    measurements = measurements_for(truth, args.measurement_photons, Path(args.work), name)
     if args.start is None:  # the seed paper's constant start, that of the first runs
         initial = initial_medium(carve(measurements, truth, profile="constant"), truth)
     else:
@@ -152,7 +156,7 @@ def main() -> None:
         print(f"{spec}: {seconds:.2f} s per estimate", flush=True)
 
     result = {**run_header(args), "pixel_blocks": args.pixel_blocks, "start": args.start,
-              "pooled": {}, "rows": []}
+              "optics": args.optics, "pooled": {}, "rows": []}
     for vb in VOXEL_BLOCKS:
         target = block_mean(towards_truth, hull, vb)[hull]
         blocked = [tuple(block_mean(g, hull, vb)[hull] for g in run[4]) for run in runs]
