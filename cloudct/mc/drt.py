@@ -166,7 +166,7 @@ from cloudct.physics.mixing import (
     total_extinction,
 )
 from cloudct.physics.phase import phase_function, sample_phase_cosine, scatter_direction
-from cloudct.physics.transmittance import EXPONENTIAL, GAMMA, depth_step
+from cloudct.physics.transmittance import EXPONENTIAL, GAMMA
 
 INV_PI = 1.0 / math.pi
 TWO_PI = 2.0 * math.pi
@@ -227,9 +227,11 @@ def sample_transmittance(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic, sta
             if family == GAMMA and mode > 0.0:
                 hazard = math.exp(-mode * depth)
                 kappa = mode * beta * hazard
+        growth = x  # of the equivalent depth across the piece (Eqs. 7-8)
         if kappa > 0.0:
-            mean, _ = power_law_piece(kappa, mode, t)
+            mean, y = power_law_piece(kappa, mode, t)
             area = trans * t * mean
+            growth = y / mode  # depth_step's, from the same log1p(kappa t)
         else:
             area = trans * t * (-math.expm1(-x) / x) if x > 0.0 else trans * t
         if area > 0.0:
@@ -245,8 +247,8 @@ def sample_transmittance(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic, sta
                 rhazard = hazard
         if family == EXPONENTIAL:
             trans *= math.exp(-x)
-        else:
-            depth = depth_step(family, depth, mode, x)[0]
+        else:  # (the linear mix reaches here only at gamma = 1, the exponential)
+            depth += growth
             trans = math.exp(-depth)
         px += t * ux
         py += t * uy
