@@ -30,6 +30,7 @@ from cloudct.mc.scene import Scene
 from cloudct.mc.sun import Sun
 from cloudct.medium import optical_medium, with_transmittance
 from cloudct.physics.transmittance import FAMILIES
+from cloudct.recycling import replay  # noqa: F401  (registers the replay kernels the page shows)
 from cloudct.retrieval.config import RetrievalConfig
 
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "architecture.md"

@@ -17,7 +17,8 @@ holds what every estimator shares:
   50 rounds with a progress bar (:func:`run_in_rounds`);
 - the **batch kernels**: :data:`BATCH_KERNELS` holds one :class:`BatchKernel` per kind of
   path the engine traces (forward photons for images or for the score-function gradient,
-  forward photons with flux tallies, backward pixel samples, camera-side gradient samples),
+  forward photons with flux tallies, backward pixel samples, camera-side gradient samples;
+  path recycling registers its replays of stored paths, :func:`register_batch_kernel`),
   with its CPU batch kernel, its CUDA launcher and how its batches may be split;
 - **where batches run**: :func:`batch_means` runs a batch kernel in this process, on the CPU
   or a GPU, or hands it to a :class:`~cloudct.mc.executor.BatchExecutor` (Dask workers),
@@ -29,6 +30,7 @@ registered in :data:`cloudct.mc.gradient.ESTIMATORS`; each names its batch kerne
 
 from __future__ import annotations
 
+import importlib
 import math
 import time
 from collections.abc import Callable
@@ -214,12 +216,12 @@ class _CPURunner:
         self.kernel(*self.head, first, last, *self.tail)
 
 
-def _forward_head(k: KernelInputs, s: Sampling, per_batch: int) -> tuple:
+def _forward_head(k: KernelInputs, s: Sampling, per_batch: int, args: tuple) -> tuple:
     return (k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, s.rr_depth,
             s.rr_survival, s.seed, per_batch)
 
 
-def _camera_head(k: KernelInputs, s: Sampling, per_batch: int) -> tuple:
+def _camera_head(k: KernelInputs, s: Sampling, per_batch: int, args: tuple) -> tuple:
     return (k.grid, k.bank, k.cams, k.sun, k.periodic, k.ground, s.rr_depth, s.rr_survival,
             s.seed, per_batch)
 
@@ -232,11 +234,13 @@ def _forward_tail(args: tuple, values: np.ndarray, events: np.ndarray) -> tuple:
     return mode, unused, residual, values, events
 
 
-def _images_shape(k: KernelInputs, args: tuple) -> tuple[int, ...]:
+def images_shape(k: KernelInputs, args: tuple) -> tuple[int, ...]:
+    """(view, row, col) of the scene's images: the ``shape`` of an image-valued kernel."""
     return (k.cams.position.shape[0], k.cams.nrows, k.cams.ncols)
 
 
-def _voxels_shape(k: KernelInputs, args: tuple) -> tuple[int, ...]:
+def voxels_shape(k: KernelInputs, args: tuple) -> tuple[int, ...]:
+    """(x, y, z) of the grid: the ``shape`` of a gradient-valued kernel."""
     return tuple(k.grid.extinction.shape[1:])
 
 
@@ -251,54 +255,69 @@ class BatchKernel:
     """One kind of path the engine traces, on both back ends.
 
     The CPU batch kernel ``cpu`` (numba, parallel over batches) is called as ``cpu(*head(k,
-    sampling, per_batch), first, last, *tail(args, values, events))``, the CUDA launcher
-    named ``cuda`` (a class of :mod:`cloudct.mc.cuda_kernels`, imported only then) as
-    ``Launcher(k, rr_depth, rr_survival, seed, per_batch, *tail(args, values, events))``;
-    both add the batch sums to ``values`` (``float64[batches, *shape(k, args)]``) and the path
-    vertices to ``events``. ``args`` are the kernel's own inputs (named in
-    :data:`BATCH_KERNELS`). ``split(args)`` says how an executor may split the work (one of
-    :data:`BY_BATCHES`, :data:`BY_VIEWS`, :data:`EACH_BATCH`; ``splits``: all it may say);
-    ``executors``: whether it runs on one at all; ``unit``: what one sample is, for progress
-    bars; ``thread``: what one CUDA thread traces."""
+    sampling, per_batch, args), first, last, *tail(args, values, events))``, the CUDA
+    launcher named ``cuda`` (a class of the module ``cuda_module``, imported only then) as
+    ``Launcher(k, rr_depth, rr_survival, seed, per_batch, *cuda_tail(args, values,
+    events))`` (``cuda_tail`` None: ``tail``); both add the batch sums to ``values``
+    (``float64[batches, *shape(k, args)]``) and the path vertices to ``events``. ``args``
+    are the kernel's own inputs (named in :data:`BATCH_KERNELS`). ``split(args)`` says how
+    an executor may split the work (one of :data:`BY_BATCHES`, :data:`BY_VIEWS`,
+    :data:`EACH_BATCH`; ``splits``: all it may say); ``executors``: whether it runs on one
+    at all (``elsewhere``: where it runs instead); ``unit``: what one sample is, for
+    progress bars; ``thread``: what one CUDA thread traces."""
 
     name: str
     unit: str
     cpu: Callable
     cuda: str
     thread: str
-    head: Callable[[KernelInputs, Sampling, int], tuple]
+    head: Callable[[KernelInputs, Sampling, int, tuple], tuple]
     tail: Callable[[tuple, np.ndarray, np.ndarray], tuple]
     shape: Callable[[KernelInputs, tuple], tuple[int, ...]]
     splits: tuple[str, ...]
     split: Callable[[tuple], str] = lambda args: BY_BATCHES
     executors: bool = True
+    elsewhere: str = "this process only"
+    cuda_module: str = "cloudct.mc.cuda_kernels"
+    cuda_tail: Callable[[tuple, np.ndarray, np.ndarray], tuple] | None = None
 
 
 #: The batch kernels by name; their ``args``: forward (mode RENDER or GRADIENT, residual),
 #: sensors (the flux tallies' array, float64[batches, 1, 1, NFLUX]), backward (),
-#: camera-gradient (estimator code, probes, quadratic, mis, residual, alias table).
+#: camera-gradient (estimator code, probes, quadratic, mis, residual, alias table). A layer
+#: above the engine adds its own with :func:`register_batch_kernel` (path recycling's
+#: replays, :mod:`cloudct.recycling.replay`).
 BATCH_KERNELS: dict[str, BatchKernel] = {
     r.name: r for r in (
         BatchKernel("forward", "photon", forward_batches, "ForwardLauncher",
                     "forward photon (GRADIENT: two passes, the second sorted by path length)",
                     _forward_head, _forward_tail,
-                    lambda k, a: (_images_shape if a[0] == RENDER else _voxels_shape)(k, a),
+                    lambda k, a: (images_shape if a[0] == RENDER else voxels_shape)(k, a),
                     (BY_BATCHES,)),
         BatchKernel("sensors", "photon", sensor_batches, "SensorLauncher",
                     "forward photon, with flux tallies", _forward_head,
-                    lambda a, values, events: (values, a[0], events), _images_shape,
+                    lambda a, values, events: (values, a[0], events), images_shape,
                     (BY_BATCHES,), executors=False),
         BatchKernel("backward", "sample/px", backward_batches, "BackwardLauncher",
                     "backward pixel sample", _camera_head,
-                    lambda a, values, events: (values, events), _images_shape,
+                    lambda a, values, events: (values, events), images_shape,
                     (BY_VIEWS,), lambda a: BY_VIEWS),
         BatchKernel("camera-gradient", "sample", camera_gradient_batches,
                     "CameraGradientLauncher", "DRT or sample-matching pixel sample",
                     _camera_head, lambda a, values, events: (*a, values, events),
-                    _voxels_shape, (BY_BATCHES, EACH_BATCH),
+                    voxels_shape, (BY_BATCHES, EACH_BATCH),
                     lambda a: BY_BATCHES if a[-1].pixel.size else EACH_BATCH),
     )
 }
+
+
+def register_batch_kernel(record: BatchKernel) -> BatchKernel:
+    """Add ``record`` to :data:`BATCH_KERNELS` (a layer above the engine registers its
+    kernels so, at its import); a name taken by another record is an error."""
+    known = BATCH_KERNELS.setdefault(record.name, record)
+    if known is not record:
+        raise ValueError(f"a batch kernel named {record.name!r} is registered already")
+    return record
 
 
 def batch_runner(
@@ -308,25 +327,25 @@ def batch_runner(
     """What :func:`run_in_rounds` calls to trace batch kernel ``kernel`` on a resolved
     ``backend`` (see :class:`BatchKernel`)."""
     record = BATCH_KERNELS[kernel]
-    tail = record.tail(args, values, events)
     if backend == "cuda":
-        from cloudct.mc import cuda_kernels
-
-        launcher = getattr(cuda_kernels, record.cuda)
+        launcher = getattr(importlib.import_module(record.cuda_module), record.cuda)
+        tail = (record.cuda_tail or record.tail)(args, values, events)
         return launcher(k, sampling.rr_depth, sampling.rr_survival, sampling.seed, per_batch,
                         *tail)
-    return _CPURunner(record.cpu, record.head(k, sampling, per_batch), tail)
+    return _CPURunner(record.cpu, record.head(k, sampling, per_batch, args),
+                      record.tail(args, values, events))
 
 
 def batch_kernel_table() -> str:
-    """The batch kernels of :data:`BATCH_KERNELS` as the Markdown table of
-    ``docs/architecture.md`` (a test keeps the page equal to it)."""
+    """The batch kernels registered in :data:`BATCH_KERNELS` as the Markdown table of
+    ``docs/architecture.md``, which shows them with :mod:`cloudct.recycling` imported (its
+    replays registered; a test keeps the page equal to it)."""
     lines = ["| batch kernel | CPU (numba) | CUDA launcher | one CUDA thread per | executors "
              "split it by |", "|" + " --- |" * 5]
     for r in BATCH_KERNELS.values():
         split = " or ".join(r.splits)
         lines.append(f"| `{r.name}` | `{r.cpu.py_func.__name__}` | `{r.cuda}` | {r.thread} | "
-                     f"{split if r.executors else 'this process only'} |")
+                     f"{split if r.executors else r.elsewhere} |")
     return "\n".join(lines) + "\n"
 
 

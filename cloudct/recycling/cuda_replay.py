@@ -181,35 +181,37 @@ def _thread_order(resident: DeviceStore, sort_paths: bool | None):
 
 class ReplayLauncher(ck.Launcher):
     """The CUDA counterpart of :func:`~cloudct.recycling.replay_kernels.replay_render_batches`
-    (``mode`` RENDER: ``out`` the per-batch images) and
-    :func:`~cloudct.recycling.replay_kernels.replay_gradient_batches` (GRADIENT: ``out`` the
-    per-batch gradients, weighted by ``residual``), as ``run(first, last)`` for
-    :func:`~cloudct.recycling.store.run_batches`. ``k`` is the
-    :class:`~cloudct.mc.estimate.KernelInputs` and ``beta`` the flat total extinction of the
-    current medium; ``use_crossings`` as for the CPU kernels. The outputs (sums over the
-    paths, as on the CPU), ``log_ratio`` (by photon-order position) and ``events`` are
-    filled once the last round has run."""
+    (``residual`` None: ``out`` the per-batch images) and
+    :func:`~cloudct.recycling.replay_kernels.replay_gradient_batches` (``out`` the per-batch
+    gradients, weighted by ``residual``), as ``run(first, last)``: the CUDA launcher of the
+    batch kernels ``replay-render`` and ``replay-gradient`` (registered by
+    :mod:`cloudct.recycling.replay`; called as every launcher of
+    :func:`cloudct.mc.estimate.batch_runner`: ``k``, the roulette, ``seed`` (unused: a
+    replay draws no random numbers) and the paths per batch, then its own inputs). ``beta``
+    is the flat total extinction of the current medium. The outputs (sums over the paths,
+    as on the CPU), ``log_ratio`` (by photon-order position) and ``events`` are filled once
+    the last round has run."""
 
     def __init__(
-        self, store, k, beta: np.ndarray, use_crossings: bool, mode: int,
-        residual: np.ndarray | None, out: np.ndarray, log_ratio: np.ndarray,
-        events: np.ndarray, *,
+        self, k, rr_depth: int, rr_survival: float, seed: int, per_batch: int, store,
+        beta: np.ndarray, residual: np.ndarray | None, out: np.ndarray,
+        log_ratio: np.ndarray, events: np.ndarray, *,
         sort_paths: bool | None = None, threads_per_block: int | None = None,
     ) -> None:
-        if mode not in (RENDER, GRADIENT):
-            raise ValueError(f"mode must be RENDER or GRADIENT, got {mode}")
+        if per_batch != store.per_batch:
+            raise ValueError(f"the store holds {store.per_batch} paths per batch, not "
+                             f"{per_batch}")
         resident = device_store(store)
-        self.mode = mode
         self.per_batch = store.per_batch
         self.nbatch = store.batches
         self.tpb = threads_per_block or ck.THREADS_PER_BLOCK
         self.host = (out, log_ratio, events)
         self.scene = device_scene(k)
         self.args = (
-            k.periodic, k.ground, store.rr_depth, store.rr_survival, k.sun.power,
-            store.per_batch, bool(use_crossings), resident.arrays,
+            k.periodic, k.ground, rr_depth, rr_survival, k.sun.power,
+            store.per_batch, store.has_crossings, resident.arrays,
         )
-        what = "the per-batch images" if mode == RENDER else "the per-batch gradients"
+        what = "the per-batch images" if residual is None else "the per-batch gradients"
         ck.check_fits(out.nbytes + log_ratio.nbytes, what + " and log r per path")
         self.out = device_zeros(out.shape)
         self.log_ratio = device_zeros(log_ratio.shape)
@@ -217,7 +219,7 @@ class ReplayLauncher(ck.Launcher):
         dummy = device_zeros((1, 1, 1))
         head = (to_device(beta), _thread_order(resident, sort_paths))
         tail = (self.log_ratio, self.events, resident.scratch, dummy)
-        if mode == RENDER:
+        if residual is None:
             self.kernel = replay_render_kernel
             self.buffers = (*head, self.out, *tail)
         else:

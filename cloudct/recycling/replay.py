@@ -29,8 +29,18 @@ import numpy as np
 import xarray as xr
 
 from cloudct.mc.backend import resolve_backend
-from cloudct.mc.estimate import KernelInputs, check_residual, kernel_inputs
-from cloudct.mc.forward import GRADIENT, RENDER
+from cloudct.mc.estimate import (
+    BATCH_KERNELS,
+    BatchKernel,
+    KernelInputs,
+    Sampling,
+    batch_runner,
+    check_residual,
+    images_shape,
+    kernel_inputs,
+    register_batch_kernel,
+    voxels_shape,
+)
 from cloudct.mc.render import images_dataset
 from cloudct.mc.traversal import require_exponential
 from cloudct.medium import cell_edges
@@ -116,8 +126,36 @@ def correction_log_weights(
     return log_r
 
 
+def _replay_head(k: KernelInputs, s: Sampling, per_batch: int, args: tuple) -> tuple:
+    store, beta = args[:2]
+    return (k.grid, k.bank, k.cams, k.copies, k.periodic, k.ground, s.rr_depth, s.rr_survival,
+            k.sun.power, beta, store.arrays, store.has_crossings, per_batch)
+
+
+#: The replays as batch kernels of the engine's registry. Their ``args``: (store, beta, log r
+#: per path) for the images; (store, beta, log r, residual, trail capacity) for the gradient.
+#: On Dask they run where each part of a store is kept (:mod:`cloudct.distributed.recycling`).
+_KEPT = "where its store is kept (Dask: `cloudct.distributed.recycling`)"
+for _record in (
+    BatchKernel("replay-render", "path", replay_render_batches, "ReplayLauncher",
+                "stored path (local estimates), in the store's thread order", _replay_head,
+                lambda a, values, events: (values, a[2], events, a[0].max_records),
+                images_shape, (), executors=False, elsewhere=_KEPT,
+                cuda_module="cloudct.recycling.cuda_replay",
+                cuda_tail=lambda a, values, events: (a[0], a[1], None, values, a[2], events)),
+    BatchKernel("replay-gradient", "path", replay_gradient_batches, "ReplayLauncher",
+                "stored path (score-function gradient), in the store's thread order",
+                _replay_head, lambda a, values, events: (a[3], values, a[2], events, a[4],
+                                                         a[0].max_records),
+                voxels_shape, (), executors=False, elsewhere=_KEPT,
+                cuda_module="cloudct.recycling.cuda_replay",
+                cuda_tail=lambda a, values, events: (a[0], a[1], a[3], values, a[2], events)),
+):
+    register_batch_kernel(_record)
+
+
 def _replay(
-    store: PathStore, medium: xr.Dataset, mode: int, residual: np.ndarray | None,
+    store: PathStore, medium: xr.Dataset, residual: np.ndarray | None,
     progress: bool | None, desc: str, backend: str,
 ) -> tuple[np.ndarray, dict]:
     backend = resolve_backend(backend)
@@ -125,37 +163,19 @@ def _replay(
     b = store.batches
     log_r = np.empty(store.paths)
     events = np.zeros(b, dtype=np.int64)
-    common = (
-        k.grid, k.bank, k.cams, k.copies, k.periodic, k.ground, store.rr_depth,
-        store.rr_survival, k.sun.power, beta, store.arrays, store.has_crossings,
-        store.per_batch,
-    )
-    if mode == RENDER:
-        out = np.zeros((b, len(store.scene.cameras), k.cams.nrows, k.cams.ncols))
-    else:
-        out = np.zeros((b, *k.grid.extinction.shape[1:]))
-    if backend == "cuda":
-        from cloudct.recycling.cuda_replay import ReplayLauncher
-
-        run = ReplayLauncher(
-            store, k, beta, store.has_crossings, mode, residual, out, log_r, events
-        )
-    elif mode == RENDER:
-
-        def run(first: int, last: int) -> None:
-            replay_render_batches(*common, first, last, out, log_r, events, store.max_records)
+    # the store's roulette and seed; its batches (a part of a store may hold one) size `out`
+    sampling = Sampling(seed=store.seed, rr_depth=store.rr_depth,
+                        rr_survival=store.rr_survival, backend=backend)
+    if residual is None:
+        kernel, args = "replay-render", (store, beta, log_r)
     else:
         # scratch room for the crossings of a camera connection (longer ones: walked twice)
         trail_capacity = 4 * sum(e.size - 1 for e in k.edges) + 16
-
-        def run(first: int, last: int) -> None:
-            replay_gradient_batches(
-                *common, first, last, residual, out, log_r, events, trail_capacity,
-                store.max_records,
-            )
-
+        kernel, args = "replay-gradient", (store, beta, log_r, residual, trail_capacity)
+    out = np.zeros((b, *BATCH_KERNELS[kernel].shape(k, args)))
+    run = batch_runner(kernel, backend, k, sampling, store.per_batch, args, out, events)
     wall = run_batches(run, store.per_batch, b, progress, unit="path", desc=desc)
-    if mode == GRADIENT and store.variable is not None:
+    if residual is not None and store.variable is not None:
         out[:, ~store.variable] = 0.0  # connections hold no crossings of frozen voxels
     summary = weight_summary(log_r, store.batches)
     ess = summary_ess(summary)[0]
@@ -182,7 +202,7 @@ def replay_images(
     col] (batch means, like :func:`cloudct.mc.render.render_batches`) and run information
     (``ess``, ``ess_fraction`` of the whole-path correction factors, ``log_r`` per path,
     ``backend`` run on)."""
-    return _replay(store, medium, RENDER, None, progress, "recycled images", backend)
+    return _replay(store, medium, None, progress, "recycled images", backend)
 
 
 def replay_render(
@@ -224,7 +244,7 @@ def replay_batch_gradients(
     """The gradient of :func:`replay_gradient` per batch: float64[batches, x, y, z] (batch
     means) and run information with ``log_r`` per path, like :func:`replay_images`."""
     residual = check_residual(residual, store.scene)
-    return _replay(store, medium, GRADIENT, residual, progress, "recycled gradient", backend)
+    return _replay(store, medium, residual, progress, "recycled gradient", backend)
 
 
 def replay_gradient(
