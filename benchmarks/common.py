@@ -163,6 +163,21 @@ def error_over_time(result: str | Path, minutes=(5, 15, 30, 60)) -> dict:
             "over_time": marks}
 
 
+def error_markdown(result: dict) -> str:
+    """The ``runs`` of a retrieval comparison (name -> :func:`error_over_time`) as a table
+    of epsilon / delta at each time mark, then its scalar values."""
+    runs = result["runs"]
+    marks = sorted({m for run in runs.values() for m in run["over_time"]},
+                   key=lambda mark: float(mark.split()[0]))  # "5 min"
+    rows = [[name, str(run["iterations"]), f"{run['seconds']:.0f}",
+             *(f"{run['over_time'][m]['epsilon']:.3f} / {run['over_time'][m]['delta']:+.3f}"
+               if m in run["over_time"] else "" for m in marks),
+             f"{run['final']['epsilon']:.3f} / {run['final']['delta']:+.3f}"]
+            for name, run in runs.items()]
+    table = markdown_table(["run", "iterations", "seconds", *marks, "end"], rows)
+    return "epsilon / delta\n\n" + "\n".join(table) + "\n\n" + scalar_markdown(result)
+
+
 def loss_at_the_truth(media: dict, measurements: xr.Dataset, photons: int) -> dict:
     """The loss (Eq. 41, unit weights) of the true extinction rendered under each
     assumption (``media``: name -> the truth as that assumption sees it) against the
@@ -194,9 +209,11 @@ def over_time_markdown(result: dict) -> str:
     return "\n".join(markdown_table(["time", "iteration", "epsilon", "delta"], rows)) + "\n"
 
 
-def error_figure(runs: dict[str, Path], path: Path, title: str) -> None:
-    """Epsilon and delta against wall time of retrieval results (``cloudct retrieve``'s
-    netCDF files), one curve per ``label: file`` of ``runs``, saved to ``path``."""
+def error_figure(runs: dict[str, Path], path: Path, title: str,
+                 device: str = "2 CPU cores") -> None:
+    """Epsilon and delta against wall time on ``device`` of retrieval results (``cloudct
+    retrieve``'s netCDF files), one curve per ``label: file`` of ``runs``, saved to
+    ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -212,7 +229,7 @@ def error_figure(runs: dict[str, Path], path: Path, title: str) -> None:
     axes[1].set_ylabel("delta (> 0: extinction missing)")
     axes[1].axhline(0.0, color="k", lw=0.6)
     for ax in axes:
-        ax.set_xlabel("wall time [min], 2 CPU cores")
+        ax.set_xlabel(f"wall time [min], {device}")
     axes[0].legend(fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()

@@ -18,8 +18,9 @@ from test_score_gradient import gradient_medium, gradient_scene
 from cloudct.cli import build_parser, main
 from cloudct.cli.retrieve import DEMO_CONFIG, config_from_options
 from cloudct.mc.render import render
-from cloudct.measurements import save_measurements
-from cloudct.medium import save_medium
+from cloudct.measurements import load_measurements, save_measurements
+from cloudct.medium import load_medium, save_medium
+from cloudct.retrieval.config import settings_for_optics
 from cloudct.retrieval.config_file import (
     RUN_KEYS,
     STAGE_FIELDS,
@@ -298,3 +299,28 @@ def test_resume_refuses_settings_that_differ_from_the_checkpoints(tmp_path, inpu
     with pytest.raises(ResumeConflict, match="photons = 2000 differs from the checkpoint's"):
         Retrieval.resume(tmp_path / "r.checkpoint.nc", xr.load_dataset(inputs[0]),
                          initial_guess(), settings={"photons": 2000})
+
+
+def test_a_mie_medium_is_retrieved_with_the_score_function_unless_told(inputs, caplog):
+    """With Mie optics sample matching's gradient is mostly noise (docs/benchmarks.md, "Mie
+    optics"): where the settings name no estimator, a Mie medium's retrieval takes the
+    score function at every stage, and says so; settings that name an estimator or a pixel
+    sampling, and other optics, keep theirs. The command line (given the optics) and a
+    Retrieval made without a config follow the same rule."""
+    caplog.set_level("INFO", logger="cloudct")
+    assert settings_for_optics({}, "mie") == {"estimator": ("score",)}
+    assert settings_for_optics({"stages": (4, 2, 1)}, "mie")["estimator"] == ("score",) * 3
+    for given in ({"estimator": ("drt",)}, {"pixel_sampling": "uniform"}):
+        assert settings_for_optics(given, "mie") == given
+    assert settings_for_optics({}, "hg") == {}
+    assert "estimator score: the medium has mie optics" in caplog.text
+    parse = build_parser().parse_args
+    assert config_from_options(parse(["retrieve"]), optics="mie").estimator == ("score",)
+    assert config_from_options(parse(["retrieve"])).estimator == ("sm",)
+    assert config_from_options(parse(["retrieve", "--estimator", "drt"]),
+                               optics="mie").estimator == ("drt",)
+    measured, initial = load_measurements(inputs[0]), load_medium(inputs[2])
+    assert Retrieval(measured, initial).config.estimator == ("sm",)
+    mie = initial.assign_attrs(optics="mie")  # the label the rule reads
+    assert Retrieval(measured, mie).config.estimator == ("score",)
+    assert Retrieval(measured, mie, RetrievalConfig()).config.estimator == ("sm",)

@@ -31,6 +31,7 @@ from benchmarks.common import (
     REPO,
     RESULTS,
     error_figure,
+    error_markdown,
     error_over_time,
     loss_at_the_truth,
     run_command,
@@ -91,7 +92,7 @@ def main() -> None:
     error_figure({LABELS[name]: out / f"{name}.nc" for name in args.runs}, FIGURE,
                  "single cloud, power-law measurements (a = 2), retrieved under each "
                  "assumption")
-    write_result(summary, out / "transmittance_retrieval")
+    write_result(summary, out / "transmittance_retrieval", error_markdown)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ from cloudct.mc.scene import build_scene
 from cloudct.measurements import load_measurements, save_measurements, synthesize_measurements
 from cloudct.medium import cell_edges, load_medium, save_medium
 from cloudct.netcdf import load_netcdf, require_variables
-from cloudct.optics import DEFAULT_OPTICS, to_optical
+from cloudct.optics import DEFAULT_OPTICS, optics_name, to_optical
 from cloudct.retrieval.carving import carve, initial_medium
 from cloudct.retrieval.config import (
     AUTO,
@@ -39,6 +39,7 @@ from cloudct.retrieval.config import (
     SPARSITY_SCHEDULES,
     TRANSMITTANCE,
     RetrievalConfig,
+    settings_for_optics,
 )
 from cloudct.retrieval.config_file import (
     DEPENDENT,
@@ -151,11 +152,14 @@ def run_settings(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, st
     return settings, origins
 
 
-def config_from_options(args: argparse.Namespace, **settings) -> RetrievalConfig:
+def config_from_options(args: argparse.Namespace, optics: str = DEFAULT_OPTICS,
+                        **settings) -> RetrievalConfig:
     """The configuration of a run's options (:func:`add_run_options`, --config and the
-    command's defaults, :func:`run_settings`); ``settings`` (other :class:`RetrievalConfig`
-    fields) are added and take precedence."""
-    return config_from_settings({**run_settings(args)[0], **settings})
+    command's defaults, :func:`run_settings`) for a medium of cloud ``optics``
+    (:func:`~cloudct.retrieval.config.settings_for_optics`); ``settings`` (other
+    :class:`RetrievalConfig` fields) are added and take precedence."""
+    return config_from_settings(settings_for_optics({**run_settings(args)[0], **settings},
+                                                    optics))
 
 
 def _write_config(args: argparse.Namespace) -> int:
@@ -227,6 +231,7 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
             except ResumeConflict as err:
                 raise ValueError(_resume_conflict(err.conflicts, origins)) from None
         else:
+            settings = settings_for_optics(settings, optics_name(initial))
             run = Retrieval(measurements, initial, config_from_settings(settings), truth=truth,
                             **where)
         result = run.run(checkpoint=checkpoint, progress=None)
@@ -258,7 +263,7 @@ def _cli_demo(args: argparse.Namespace) -> int:
     args.defaults_file = demo.config
     if args.write_config:
         return _write_config(args)
-    config = config_from_options(args)
+    config = config_from_options(args, optics=args.optics or DEFAULT_OPTICS)
     out = Path(args.output)
     _refuse_overwrite(out / "result.nc", args.overwrite)
     out.mkdir(parents=True, exist_ok=True)

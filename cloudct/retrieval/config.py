@@ -8,6 +8,7 @@ The resolved configuration is stored with every result and checkpoint (attribute
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 from cloudct.mc.gradient import ESTIMATORS, gradient_estimator
@@ -118,7 +119,8 @@ class RetrievalConfig:
     sparsity: float | None = None  # 1/km^2: weight of the L1 prior (Retrieval.l1_gradient;
     # None: SPARSITY, 0 with lbfgsb)
     estimator: tuple[str, ...] | None = None  # per stage: gradient estimator, one of
-    # cloudct.mc.gradient.ESTIMATORS (None: "sm", or "score" where the gradient is replayed)
+    # cloudct.mc.gradient.ESTIMATORS (None: "sm", or "score" where the gradient is replayed;
+    # a Mie medium's retrieval fills it first: settings_for_optics)
     pixel_sampling: str | None = None  # camera-side estimators: pixels "uniform" or
     # drawn in proportion to |residual| (cloudct.mc.pixel_sampling; None: "residual")
     averaging: str = "ema"  # iterate average (Retrieval.average): "none", "uniform"
@@ -275,3 +277,26 @@ class RetrievalConfig:
         if self.recycling == "adaptive":
             return AdaptiveESS(min_fraction=self.min_ess, max_period=self.period)
         return None
+
+
+#: The gradient estimator a retrieval takes, where its settings name none, for a medium of
+#: these cloud optics: with Mie optics sample matching's gradient has ~560x the noise it
+#: has with HG optics, the score function's 29x, and per second the score function is the
+#: most efficient (docs/benchmarks.md, "Mie optics").
+OPTICS_ESTIMATOR = {"mie": "score"}
+
+
+def settings_for_optics(settings: dict, optics: str) -> dict:
+    """``settings`` (:class:`RetrievalConfig`'s keyword arguments) for a medium of cloud
+    ``optics``: with :data:`OPTICS_ESTIMATOR`'s estimator at every stage where they name
+    neither an estimator nor a pixel sampling (said in one line of the ``cloudct`` log),
+    else as they are."""
+    name = OPTICS_ESTIMATOR.get(optics)
+    if name is None or settings.get("estimator") is not None \
+            or settings.get("pixel_sampling") is not None:
+        return settings
+    stages = len(RetrievalConfig(**settings).stages)
+    logging.getLogger("cloudct").info(
+        "estimator %s: the medium has %s optics, with which sample matching's gradient is "
+        "mostly noise (docs/benchmarks.md, \"Mie optics\")", name, optics)
+    return {**settings, "estimator": (name,) * stages}

@@ -34,7 +34,7 @@ from cloudct.measurements import assumed_transmittance, measured_transmittance
 from cloudct.medium import cell_edges, transmittance_model, validate_medium
 from cloudct.netcdf import InputFileError, load_netcdf, require_variables, save_netcdf
 from cloudct.optics import kernel_arrays, optics_name
-from cloudct.retrieval.config import AUTO, RetrievalConfig
+from cloudct.retrieval.config import AUTO, RetrievalConfig, settings_for_optics
 from cloudct.retrieval.config_file import check_resume, config_from_json, config_to_toml
 from cloudct.retrieval.loss import (
     image_loss,
@@ -142,7 +142,7 @@ class Retrieval:
         # resolved once, here (on the workers with a client)
         self.backend = backend if client is not None else resolve_backend(backend)
         self.client = client
-        self.config = config or RetrievalConfig()
+        self.config = config or RetrievalConfig(**settings_for_optics({}, optics_name(initial)))
         self.measurements = measurements
         self.template = assumed_transmittance(initial, measurements, self.config.transmittance)
         # before any work: the score function does not differentiate the linear mix
