@@ -8,6 +8,7 @@ shows that it does.
 
 from __future__ import annotations
 
+import logging
 import os
 import subprocess
 import sys
@@ -15,10 +16,25 @@ from pathlib import Path
 
 import grimp
 import pytest
-from importlinter.cli import lint_imports
+from importlinter import cli
 
 REPO = Path(__file__).resolve().parents[1]
 MAX_MODULE_LINES = 550
+
+
+def lint_imports(**options) -> int:
+    """import-linter's ``lint_imports``, without its side effect on the process: its logging
+    set-up (``logging.config.dictConfig``) disables every logger that exists, cloudct's
+    too, which would silence the ``cloudct`` log of the tests that run after it in this
+    process."""
+    loggers = [logger for logger in logging.Logger.manager.loggerDict.values()
+               if isinstance(logger, logging.Logger)]
+    disabled = [logger.disabled for logger in loggers]
+    try:
+        return cli.lint_imports(**options)
+    finally:
+        for logger, state in zip(loggers, disabled, strict=True):
+            logger.disabled = state
 
 
 @pytest.fixture
