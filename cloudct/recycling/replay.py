@@ -136,7 +136,7 @@ def _replay_head(k: KernelInputs, s: Sampling, per_batch: int, args: tuple) -> t
 #: per path) for the images; (store, beta, log r, residual, trail capacity) for the gradient.
 #: On Dask they run where each part of a store is kept (:mod:`cloudct.distributed.recycling`).
 _KEPT = "where its store is kept (Dask: `cloudct.distributed.recycling`)"
-for _record in (
+REPLAY_KERNELS = tuple(register_batch_kernel(record) for record in (
     BatchKernel("replay-render", "path", replay_render_batches, "ReplayLauncher",
                 "stored path (local estimates), in the store's thread order", _replay_head,
                 lambda a, values, events: (values, a[2], events, a[0].max_records),
@@ -150,8 +150,7 @@ for _record in (
                 voxels_shape, (), executors=False, elsewhere=_KEPT,
                 cuda_module="cloudct.recycling.cuda_replay",
                 cuda_tail=lambda a, values, events: (a[0], a[1], a[3], values, a[2], events)),
-):
-    register_batch_kernel(_record)
+))
 
 
 def _replay(
