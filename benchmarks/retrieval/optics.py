@@ -93,7 +93,7 @@ def main() -> None:
     for measured, optics in sorted({RUNS[name][:2] for name in args.runs}):
         init = out / _init_name(measured, optics)
         if not init.exists():
-            run_command(["carve", str(out / _prefix(measured) + "measurements.nc"),
+            run_command(["carve", str(out / (_prefix(measured) + "measurements.nc")),
                          "--optics", optics, *backend, "-o", str(init)], log)
     if "mie" in {RUNS[name][0] for name in args.runs}:
         summary["loss_at_the_truth"] = loss_at_the_truth(
@@ -104,9 +104,9 @@ def main() -> None:
         measured, optics, options = RUNS[name]
         files = out / (_prefix(measured) + "measurements.nc"), out / _init_name(measured, optics)
         if args.backend != "cpu":  # compile the kernels first, outside the timed run
-            run_command(["retrieve", *map(str, files), "--iterations", "2", "--photons",
-                         "20000", *options, *backend, "-o", str(out / "warm_up.nc"),
-                         "--overwrite"], log)
+            run_command(["retrieve", str(files[0]), "--init", str(files[1]), "--iterations",
+                         "2", "--photons", "20000", *options, *backend,
+                         "-o", str(out / "warm_up.nc"), "--overwrite"], log)
         result = str(out / f"{name}{suffix}.nc")
         run_command(["retrieve", str(files[0]), "--init", str(files[1]), "--truth",
                      str(out / (_prefix(measured) + "truth.nc")), "--time-limit",
