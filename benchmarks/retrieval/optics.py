@@ -7,9 +7,11 @@ measurements (nine 76 x 76 views, sun at the zenith) record the optics. From a s
 start with each optics (``cloudct carve --optics mie`` or ``hg``: the same hull and
 extinction, the template's cloud optics), the commands a user types retrieve the extinction
 
-- with Mie optics and each gradient estimator (``mie_sm``, the defaults; ``mie_drt``,
-  ``mie_score``), and
-- assuming Henyey-Greenstein optics (g 0.85, albedo 0.99; ``hg_sm``, the defaults),
+- with Mie optics and each gradient estimator (``mie_sm``: sample matching, the default
+  before a Mie medium's retrieval took the score function; ``mie_drt``; ``mie_score``, the
+  default now), and
+- assuming Henyey-Greenstein optics (g 0.85, albedo 0.99; ``hg_sm``: sample matching, the
+  default with HG optics),
 
 each for the same wall time, and reports epsilon and delta over time; the references
 (``reference_sm``, ``reference_score``, ``reference_drt``) retrieve HG measurements of the
@@ -53,17 +55,17 @@ FIGURE = REPO / "docs" / "figures" / "optics_retrieval.png"
 #: name -> (the optics of its measurements, of its initial medium, options of cloudct retrieve
 #: besides the files and the time limit)
 RUNS = {
-    "mie_sm": ("mie", "mie", []),
+    "mie_sm": ("mie", "mie", ["--estimator", "sm"]),
     "mie_drt": ("mie", "mie", ["--estimator", "drt"]),
     "mie_score": ("mie", "mie", ["--estimator", "score"]),
-    "hg_sm": ("mie", "hg", []),
-    "reference_sm": ("hg", "hg", []),
+    "hg_sm": ("mie", "hg", ["--estimator", "sm"]),
+    "reference_sm": ("hg", "hg", ["--estimator", "sm"]),
     "reference_score": ("hg", "hg", ["--estimator", "score"]),
     "reference_drt": ("hg", "hg", ["--estimator", "drt"]),
 }
-LABELS = {"mie_sm": "Mie optics (defaults: sample matching)",
+LABELS = {"mie_sm": "Mie optics, sample matching",
           "mie_drt": "Mie optics, DRT", "mie_score": "Mie optics, score function",
-          "hg_sm": "assuming HG (defaults: sample matching)",
+          "hg_sm": "assuming HG, sample matching",
           "reference_sm": "reference: HG images, HG optics, sample matching",
           "reference_score": "reference: HG images, HG optics, score function",
           "reference_drt": "reference: HG images, HG optics, DRT"}
@@ -84,16 +86,16 @@ def main() -> None:
     summary = {**run_header(args), "minutes": args.minutes, "runs": {}}
     log: list[dict] = []
     for optics in sorted({RUNS[name][0] for name in args.runs}):
-        if not (out / (_prefix(optics) + "measurements.nc")).exists():
-            save_medium(single_cloud_medium(optics), str(out / (_prefix(optics) + "truth.nc")),
+        if not _file(out, optics, "measurements.nc").exists():
+            save_medium(single_cloud_medium(optics), str(_file(out, optics, "truth.nc")),
                         overwrite=True)
             run_command(["synth", "--optics", optics, "--photons",
                          str(args.measurement_photons), *backend,
-                         "-o", str(out / (_prefix(optics) + "measurements.nc"))], log)
+                         "-o", str(_file(out, optics, "measurements.nc"))], log)
     for measured, optics in sorted({RUNS[name][:2] for name in args.runs}):
-        init = out / _init_name(measured, optics)
+        init = _file(out, measured, f"init_{optics}.nc")
         if not init.exists():
-            run_command(["carve", str(out / (_prefix(measured) + "measurements.nc")),
+            run_command(["carve", str(_file(out, measured, "measurements.nc")),
                          "--optics", optics, *backend, "-o", str(init)], log)
     if "mie" in {RUNS[name][0] for name in args.runs}:
         summary["loss_at_the_truth"] = loss_at_the_truth(
@@ -102,14 +104,14 @@ def main() -> None:
     suffix = "" if args.backend == "cpu" else f"_{args.backend}"
     for name in args.runs:
         measured, optics, options = RUNS[name]
-        files = out / (_prefix(measured) + "measurements.nc"), out / _init_name(measured, optics)
+        files = _file(out, measured, "measurements.nc"), _file(out, measured, f"init_{optics}.nc")
         if args.backend != "cpu":  # compile the kernels first, outside the timed run
             run_command(["retrieve", str(files[0]), "--init", str(files[1]), "--iterations",
                          "2", "--photons", "20000", *options, *backend,
                          "-o", str(out / "warm_up.nc"), "--overwrite"], log)
         result = str(out / f"{name}{suffix}.nc")
         run_command(["retrieve", str(files[0]), "--init", str(files[1]), "--truth",
-                     str(out / (_prefix(measured) + "truth.nc")), "--time-limit",
+                     str(_file(out, measured, "truth.nc")), "--time-limit",
                      str(60 * args.minutes), "--iterations", "100000", *options, *backend,
                      "-o", result, "--overwrite"], log)
         summary["runs"][name] = {**error_over_time(result, minutes=(1, 2, 5, 10, 15, 30, 60)),
@@ -128,15 +130,11 @@ def main() -> None:
     write_result(summary, output, error_markdown)
 
 
-def _prefix(optics: str) -> str:
-    """The measurement and truth files' prefix: none for Mie (the benchmark's subject)."""
-    return "" if optics == "mie" else f"{optics}_"
-
-
-def _init_name(measured: str, optics: str) -> str:
-    """The carved start's file: ``init_OPTICS.nc`` from the Mie measurements, else
-    ``MEASURED_init_OPTICS.nc``."""
-    return f"{_prefix(measured)}init_{optics}.nc"
+def _file(out: Path, measured: str, name: str) -> Path:
+    """``out/name`` for the Mie measurements (the benchmark's subject) and what is made of
+    them, ``out/MEASURED_name`` for those of other optics (truth, measurements and carved
+    starts ``init_OPTICS.nc`` alike)."""
+    return out / (name if measured == "mie" else f"{measured}_{name}")
 
 
 if __name__ == "__main__":

@@ -295,7 +295,7 @@ def settings_for_optics(settings: dict, optics: str) -> dict:
     if name is None or settings.get("estimator") is not None \
             or settings.get("pixel_sampling") is not None:
         return settings
-    stages = len(RetrievalConfig(**settings).stages)
+    stages = len(settings.get("stages", RetrievalConfig.stages))
     logging.getLogger("cloudct").info(
         "estimator %s: the medium has %s optics, with which sample matching's gradient is "
         "mostly noise (docs/benchmarks.md, \"Mie optics\")", name, optics)
