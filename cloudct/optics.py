@@ -12,6 +12,13 @@ through a Mie table (:mod:`cloudct.physics.mie`):
 :func:`kernel_arrays` builds the :class:`OpticalGrid` and :class:`PhaseBank` of the numba
 kernels: type 0 air (Rayleigh, bank row 0), type 1 cloud (one bank row per distinct HG g,
 or one per tabulated phase function).
+
+A medium with tabulated (Mie) phase functions may carry the attribute ``phase_truncation``
+(degrees, :func:`with_phase_truncation`): the kernels then see each phase function's
+forward peak cut flat at that angle and the cloud's extinction and albedo delta-scaled
+(:func:`cloudct.physics.phase.truncated_peak`), so that every estimator traces the
+truncated optics, while the medium, and every gradient, stays in the true cloud
+extinction beta (:func:`cloud_extinction_scale`: the chain rule d beta' / d beta).
 """
 
 from __future__ import annotations
@@ -32,11 +39,14 @@ from cloudct.medium import (
 from cloudct.physics.mie import DEFAULT_WAVELENGTH
 from cloudct.physics.mie import mie_table as load_mie_table
 from cloudct.physics.mixing import OpticalGrid
-from cloudct.physics.phase import PhaseBank, phase_bank
+from cloudct.physics.phase import PhaseBank, phase_bank, truncated_peak
 from cloudct.physics.transmittance import EXPONENTIAL, GAMMA
 from cloudct.physics.transmittance import FAMILIES as TRANSMITTANCE_FAMILIES
 
 GRID = ("x", "y", "z")
+#: The attribute of a medium with tabulated phase functions that cuts their forward peak
+#: flat at that many degrees for the kernels (:func:`with_phase_truncation`).
+PHASE_TRUNCATION = "phase_truncation"
 
 #: The cloud optics a microphysical medium can be given (:func:`to_optical`).
 OPTICS = ("hg", "mie")
@@ -226,6 +236,70 @@ def _on_grid(da: xr.DataArray, template: xr.DataArray) -> np.ndarray:
     return da.broadcast_like(template).transpose(*GRID).values
 
 
+def phase_truncation(medium: xr.Dataset) -> float:
+    """The medium's ``phase_truncation`` attribute in degrees (0: none), checked: a number
+    in [0, 90), and above 0 only with tabulated cloud phase functions."""
+    value = medium.attrs.get(PHASE_TRUNCATION, 0.0)
+    try:
+        degrees = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"phase_truncation must be a number of degrees, got {value!r}") from None
+    if not 0.0 <= degrees < 90.0:
+        raise ValueError(f"phase_truncation must be in [0, 90) degrees, got {degrees}")
+    if degrees > 0.0 and "cloud_phase" not in medium:
+        raise ValueError("phase_truncation applies to tabulated (Mie) cloud phase functions; "
+                         "this medium's cloud has none (Henyey-Greenstein has no peak to cut)")
+    return degrees
+
+
+def with_phase_truncation(medium: xr.Dataset, degrees: float) -> xr.Dataset:
+    """``medium`` (optical, or microphysical: converted by :func:`to_optical` first) with
+    its ``phase_truncation`` attribute set to ``degrees`` (0 removes it): the kernels trace
+    its phase functions cut flat at that angle (module documentation)."""
+    optical = medium if is_optical(medium) else to_optical(medium)
+    out = optical.copy()
+    out.attrs = {k: v for k, v in optical.attrs.items()
+                 if k not in (PHASE_TRUNCATION, PHASE_TRUNCATION + "_units")}
+    if degrees:
+        out.attrs[PHASE_TRUNCATION] = float(degrees)
+        out.attrs[PHASE_TRUNCATION + "_units"] = "degree"
+    phase_truncation(out)
+    return out
+
+
+def _peak_fractions(ds: xr.Dataset) -> tuple[list[tuple], np.ndarray | None]:
+    """The tabulated bank entries of the cloud's phase functions and, with a truncation,
+    the share f of scattering each one's cut removes (None without)."""
+    angles = ds["scattering_angle"].values
+    truncation = phase_truncation(ds)
+    if truncation == 0.0:
+        return [("tabulated", angles, row) for row in ds["cloud_phase"].values], None
+    cut = [truncated_peak(angles, row, truncation) for row in ds["cloud_phase"].values]
+    return [("tabulated", a, v) for a, v, _ in cut], np.array([f for _, _, f in cut])
+
+
+def _delta_scaled(ds: xr.Dataset, cloud: xr.DataArray, fractions: np.ndarray | None):
+    """The cloud's extinction and albedo as the kernels see them, and d beta' / d beta
+    (None without a truncation): beta' = beta (1 - omega f), omega' = omega (1 - f) /
+    (1 - omega f), f the truncated share of each voxel's phase function."""
+    albedo = _on_grid(ds["cloud_albedo"], cloud)
+    if fractions is None:
+        return cloud.values, albedo, None
+    f = fractions[ds["cloud_phase_index"].transpose(*GRID).values]
+    scale = 1.0 - albedo * f
+    return cloud.values * scale, albedo * (1.0 - f) / scale, scale
+
+
+def cloud_extinction_scale(optical_medium: xr.Dataset) -> np.ndarray | None:
+    """d beta' / d beta per voxel, float64[x, y, z]: the factor between a gradient with
+    respect to the kernels' (delta-scaled) cloud extinction and one with respect to the
+    medium's; None where the medium has no phase truncation (the factor is 1)."""
+    if "cloud_phase" not in optical_medium or phase_truncation(optical_medium) == 0.0:
+        return None
+    cloud = optical_medium["cloud_extinction"].transpose(*GRID)
+    return _delta_scaled(optical_medium, cloud, _peak_fractions(optical_medium)[1])[2]
+
+
 def kernel_arrays(optical_medium: xr.Dataset) -> tuple[OpticalGrid, PhaseBank]:
     """The numba kernels' view of an optical medium.
 
@@ -236,8 +310,9 @@ def kernel_arrays(optical_medium: xr.Dataset) -> tuple[OpticalGrid, PhaseBank]:
         ``(grid, bank)``. Type 0 is air: ``air_extinction`` broadcast to 3D, ``air_albedo``,
         bank row 0 (Rayleigh). Type 1 is cloud: ``cloud_extinction``, ``cloud_albedo`` and
         either one HG bank row per distinct ``cloud_g`` value or one tabulated row per row
-        of ``cloud_phase`` (bank row 1 + ``cloud_phase_index``). Arrays are C-contiguous
-        float64 (int32 phase indices).
+        of ``cloud_phase`` (bank row 1 + ``cloud_phase_index``), cut and delta-scaled where
+        the medium has a ``phase_truncation`` (module documentation). Arrays are
+        C-contiguous float64 (int32 phase indices).
 
     Raises:
         ValueError: the medium has no optical cloud description.
@@ -252,17 +327,20 @@ def kernel_arrays(optical_medium: xr.Dataset) -> tuple[OpticalGrid, PhaseBank]:
 
     entries: list[tuple] = [("rayleigh",)]
     phase_index = np.zeros((2, *shape), dtype=np.int32)
+    fractions = None
     if "cloud_phase" in ds:
-        angles = ds["scattering_angle"].values
-        entries += [("tabulated", angles, row) for row in ds["cloud_phase"].values]
+        tabulated, fractions = _peak_fractions(ds)
+        entries += tabulated
         phase_index[1] = 1 + ds["cloud_phase_index"].transpose(*GRID).values
     else:
         gs, inverse = np.unique(_on_grid(ds["cloud_g"], cloud), return_inverse=True)
         entries += [("hg", gv) for gv in gs]
         phase_index[1] = 1 + inverse.reshape(shape)
 
-    extinction = np.stack([_on_grid(ds["air_extinction"], cloud), cloud.values])
-    albedo = np.stack([_on_grid(ds["air_albedo"], cloud), _on_grid(ds["cloud_albedo"], cloud)])
+    phase_truncation(ds)  # checked for HG media too
+    cloud_extinction, cloud_albedo, _ = _delta_scaled(ds, cloud, fractions)
+    extinction = np.stack([_on_grid(ds["air_extinction"], cloud), cloud_extinction])
+    albedo = np.stack([_on_grid(ds["air_albedo"], cloud), cloud_albedo])
     grid = OpticalGrid(
         x_edges=np.ascontiguousarray(x_edges, dtype=np.float64),
         y_edges=np.ascontiguousarray(y_edges, dtype=np.float64),

@@ -15,9 +15,15 @@ batches each, pooled. Reported:
 - each view's mean radiance with its standard error, and the z-score between the aimed
   and the plain estimates of every view mean and of every 4x4-binned pixel (they estimate
   the same images);
-- the score-function gradient's noise and signal with the Mie and HG optics: two
-  independent estimates of the gradient at 0.8 x the true extinction, residual from
-  images rendered once, signal fraction cos(g1, g2) and precision per second;
+- the score-function gradient's noise and signal with the Mie and HG optics (and the cut
+  Mie optics with ``--truncation``): two independent estimates of the gradient at 0.8 x
+  the true extinction, residual from images rendered once, signal fraction cos(g1, g2)
+  and precision per second;
+- ``--truncation DEG``: also the Mie images with the phase functions' forward peak cut
+  flat at DEG degrees (``phase_truncation``, :mod:`cloudct.optics`; aimed as the full
+  ones), their efficiency and firefly ratio, and their bias: the relative difference of
+  each view mean and of the lit 4x4-binned pixels from the full Mie images (aimed), in
+  units of the pair's standard error;
 - ``--piece-check``: on the test suite's piece of the single cloud (12 x 16 x 14 voxels,
   Mie optics of its own droplets, three 16 x 16 cameras), 4x4-binned pixels of an aimed
   render (3.2 million photons) against a plain one of 12.8 million and against the
@@ -27,7 +33,7 @@ batches each, pooled. Reported:
 Usage::
 
     python -m benchmarks forward.mie_variance [--photons 1000000] [--seeds 4] [--aim 0.1]
-        [--gradient-photons 1000000] [--piece-check] [--gradient-only]
+        [--gradient-photons 1000000] [--piece-check] [--gradient-only] [--truncation DEG]
         [--output benchmarks/results/mie_variance]
 """
 
@@ -47,7 +53,7 @@ from cloudct.mc.gradient import score_function_gradient
 from cloudct.mc.render import render_batches
 from cloudct.mc.scene import single_cloud_scene
 from cloudct.medium import cell_edges
-from cloudct.optics import to_optical
+from cloudct.optics import to_optical, with_phase_truncation
 from cloudct.retrieval.optimizers import block_mean
 
 BATCHES = 32
@@ -118,6 +124,24 @@ def agreement(a: dict, b: dict) -> dict:
     return {"view_z": zv.tolist(), "max_abs_view_z": float(np.abs(zv).max()),
             "binned_z_mean": float(zb.mean()), "binned_z_rms": float(np.sqrt(np.mean(zb**2))),
             "binned_lit_z_rms": float(np.sqrt(np.mean(zb_lit**2))), "binned_count": int(zb.size)}
+
+
+def truncation_bias(cut: dict, full: dict) -> dict:
+    """Relative differences of the cut images from the full ones: each view mean, and the
+    lit 4x4 bins (above 10 % of the view's brightest bin), with z = difference / the pair's
+    standard error."""
+    def rel(a, b):
+        d = a.mean(axis=0) - b.mean(axis=0)
+        se = np.sqrt(a.var(axis=0, ddof=1) / len(a) + b.var(axis=0, ddof=1) / len(b))
+        return d / b.mean(axis=0), d / se
+    view_rel, view_z = rel(cut["view_batches"], full["view_batches"])
+    fb = full["binned"].mean(axis=0)
+    lit = fb > 0.1 * fb.max(axis=(1, 2), keepdims=True)
+    bin_rel, bin_z = rel(cut["binned"][:, lit], full["binned"][:, lit])
+    return {"view_relative": view_rel.tolist(), "view_z": view_z.tolist(),
+            "bins_lit": int(lit.sum()), "bin_relative_mean": float(bin_rel.mean()),
+            "bin_relative_rms": float(np.sqrt(np.mean(bin_rel**2))),
+            "bin_z_mean": float(bin_z.mean()), "bin_z_rms": float(np.sqrt(np.mean(bin_z**2)))}
 
 
 def gradient_noise(medium, scene, photons: int, aim: float, estimates: int = 4) -> dict:
@@ -202,7 +226,7 @@ def markdown(result: dict) -> str:
     rows = []
     for name, s in result["scenes"].items():
         for optics in ("hg", "mie"):
-            for label in ("plain", "aimed"):
+            for label in [k for k in ("plain", "aimed", "cut") if k in s[optics]]:
                 r = s[optics][label]
                 rows.append([name, optics, label, f"{r['relative_variance']:.4f}",
                              f"{r['wall_s']:.1f}", f"{r['efficiency']:.3f}",
@@ -221,6 +245,20 @@ def markdown(result: dict) -> str:
                          str(a["binned_count"])])
     lines += markdown_table(["scene", "optics", "max |z| view means", "mean z 4x4 bins",
                              "rms z 4x4 bins", "rms z lit bins", "bins"], rows)
+    if "truncation" in result:
+        lines += ["", f"Mie with the peak cut at {result['truncation']} degrees against the "
+                  "full Mie images (aimed), relative difference (z = over the pair's "
+                  "standard error):", ""]
+        rows = []
+        for name, s in result["scenes"].items():
+            b = s["mie"]["cut_bias"]
+            rows.append([name, " ".join(f"{r:+.3f}" for r in b["view_relative"]),
+                         f"{max(abs(z) for z in b['view_z']):.1f}",
+                         f"{b['bin_relative_mean']:+.4f} / {b['bin_relative_rms']:.4f}",
+                         f"{b['bin_z_mean']:+.2f} / {b['bin_z_rms']:.2f}", str(b["bins_lit"])])
+        lines += markdown_table(["scene", "view means, relative", "max |z| views",
+                                 "lit 4x4 bins: mean / rms relative",
+                                 "lit bins: mean / rms z", "bins"], rows)
     if "gradient" in result:
         lines += ["", "Score-function gradient at 0.8 x the true extinction (single cloud, "
                   f"{result['gradient_photons']} photons per estimate):", ""]
@@ -246,9 +284,13 @@ def markdown(result: dict) -> str:
 
 
 def gradients(media: dict, scene, args) -> dict:
-    return {optics: {label: gradient_noise(media[optics], scene, args.gradient_photons, a)
-                     for label, a in (("plain", 0.0), ("aimed", args.aim))}
-            for optics in ("hg", "mie")}
+    out = {optics: {label: gradient_noise(media[optics], scene, args.gradient_photons, a)
+                    for label, a in (("plain", 0.0), ("aimed", args.aim))}
+           for optics in ("hg", "mie")}
+    if args.truncation:  # the residual, too, from images of the cut optics
+        out["mie"]["cut"] = gradient_noise(with_phase_truncation(media["mie"], args.truncation),
+                                           scene, args.gradient_photons, args.aim)
+    return out
 
 
 def main() -> None:
@@ -260,6 +302,8 @@ def main() -> None:
     parser.add_argument("--piece-check", action="store_true")
     parser.add_argument("--gradient-only", action="store_true",
                         help="recompute only the gradient part of an existing --output")
+    parser.add_argument("--truncation", type=float, default=0.0,
+                        help="also render Mie with the peak cut at this many degrees")
     parser.add_argument("--output", default=str(RESULTS / "mie_variance"))
     args = parser.parse_args()
     if args.gradient_only:
@@ -271,6 +315,8 @@ def main() -> None:
         return
     result = {**run_header(args), "photons": args.photons, "seeds": args.seeds, "aim": args.aim,
               "gradient_photons": args.gradient_photons, "scenes": {}}
+    if args.truncation:
+        result["truncation"] = args.truncation
     for name, media in scenes().items():
         scene = scene_of(media["hg"])
         render_batches(media["mie"], scene, photons=64, progress=False)  # JIT warm-up
@@ -283,6 +329,11 @@ def main() -> None:
                 bright = plain["mean"] > 0.1 * plain["mean"].max(axis=(1, 2), keepdims=True)
             out[optics] = {"plain": summary(plain, bright), "aimed": summary(aimed, bright),
                            "agreement": agreement(plain, aimed)}
+            if optics == "mie" and args.truncation:
+                cut = pooled_render(with_phase_truncation(media["mie"], args.truncation),
+                                    scene, args.photons, args.seeds, args.aim)
+                out[optics]["cut"] = summary(cut, bright)
+                out[optics]["cut_bias"] = truncation_bias(cut, aimed)
             print(name, optics, out[optics]["plain"]["efficiency"],
                   out[optics]["aimed"]["efficiency"], flush=True)
         result["scenes"][name] = out

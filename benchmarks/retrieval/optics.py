@@ -7,9 +7,12 @@ measurements (nine 76 x 76 views, sun at the zenith) record the optics. From a s
 start with each optics (``cloudct carve --optics mie`` or ``hg``: the same hull and
 extinction, the template's cloud optics), the commands a user types retrieve the extinction
 
-- with Mie optics and each gradient estimator (``mie_sm``: sample matching, the default
-  before a Mie medium's retrieval took the score function; ``mie_drt``; ``mie_score``, the
-  default now), and
+- with Mie optics and the full forward peak (``--phase-truncation 0``) and each gradient
+  estimator (``mie_sm``: sample matching, the default before a Mie medium's retrieval took
+  the score function; ``mie_drt``; ``mie_score``, the default with the full peak), and with
+  the phase functions' forward peak cut flat at 3 degrees for the retrieval's paths
+  (``--phase-truncation 3``, a Mie medium's default now; ``mie_cut3_sm`` with the default
+  estimator, ``mie_cut3_score``; the measurements keep the full peak), and
 - assuming Henyey-Greenstein optics (g 0.85, albedo 0.99; ``hg_sm``: sample matching, the
   default with HG optics),
 
@@ -21,12 +24,14 @@ optics against the Mie measurements: the loss that remains at the truth when the
 are wrong.
 
     python -m benchmarks retrieval.optics [--minutes 15] [--runs mie_sm hg_sm ...]
-        [--backend cpu|cuda|auto] [--out DIR]
+        [--backend cpu|cuda|auto] [--out DIR] [--figure PNG] [--collect]
 
 Writes DIR/optics_retrieval.json (``_cuda`` or ``_auto`` after the name with another back
 end; the runs of earlier calls stay in it, each with its date and commit) and the figure
-docs/figures/optics_retrieval.png (same suffix) of every run in it. On a GPU each run
-is preceded by a two-iteration retrieval that compiles its kernels, outside the timed run.
+(default docs/figures/optics_retrieval.png, same suffix) of the runs whose result files are
+in DIR. On a GPU each run is preceded by a two-iteration retrieval that compiles its
+kernels, outside the timed run. ``--collect`` retrieves nothing: it adds the runs' existing
+result files to the summary (a call that ended before writing it).
 """
 
 from __future__ import annotations
@@ -55,9 +60,11 @@ FIGURE = REPO / "docs" / "figures" / "optics_retrieval.png"
 #: name -> (the optics of its measurements, of its initial medium, options of cloudct retrieve
 #: besides the files and the time limit)
 RUNS = {
-    "mie_sm": ("mie", "mie", ["--estimator", "sm"]),
-    "mie_drt": ("mie", "mie", ["--estimator", "drt"]),
-    "mie_score": ("mie", "mie", ["--estimator", "score"]),
+    "mie_sm": ("mie", "mie", ["--estimator", "sm", "--phase-truncation", "0"]),
+    "mie_drt": ("mie", "mie", ["--estimator", "drt", "--phase-truncation", "0"]),
+    "mie_score": ("mie", "mie", ["--estimator", "score", "--phase-truncation", "0"]),
+    "mie_cut3_score": ("mie", "mie", ["--estimator", "score", "--phase-truncation", "3"]),
+    "mie_cut3_sm": ("mie", "mie", ["--estimator", "sm", "--phase-truncation", "3"]),
     "hg_sm": ("mie", "hg", ["--estimator", "sm"]),
     "reference_sm": ("hg", "hg", ["--estimator", "sm"]),
     "reference_score": ("hg", "hg", ["--estimator", "score"]),
@@ -65,6 +72,8 @@ RUNS = {
 }
 LABELS = {"mie_sm": "Mie optics, sample matching",
           "mie_drt": "Mie optics, DRT", "mie_score": "Mie optics, score function",
+          "mie_cut3_score": "Mie optics cut at 3 degrees, score function",
+          "mie_cut3_sm": "Mie optics cut at 3 degrees, sample matching",
           "hg_sm": "assuming HG, sample matching",
           "reference_sm": "reference: HG images, HG optics, sample matching",
           "reference_score": "reference: HG images, HG optics, score function",
@@ -79,25 +88,29 @@ def main() -> None:
     parser.add_argument("--backend", choices=("cpu", "cuda", "auto"), default="cpu",
                         help="of every command (default cpu: the 2-core table)")
     parser.add_argument("--out", type=Path, default=RESULTS / "optics_retrieval")
+    parser.add_argument("--figure", type=Path, help=f"default {FIGURE} (back-end suffix)")
+    parser.add_argument("--collect", action="store_true",
+                        help="summarise the runs' existing result files, retrieve nothing")
     args = parser.parse_args()
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     backend = ["--backend", args.backend]
     summary = {**run_header(args), "minutes": args.minutes, "runs": {}}
     log: list[dict] = []
-    for optics in sorted({RUNS[name][0] for name in args.runs}):
+    for optics in sorted({RUNS[name][0] for name in args.runs} if not args.collect else ()):
         if not _file(out, optics, "measurements.nc").exists():
             save_medium(single_cloud_medium(optics), str(_file(out, optics, "truth.nc")),
                         overwrite=True)
             run_command(["synth", "--optics", optics, "--photons",
                          str(args.measurement_photons), *backend,
                          "-o", str(_file(out, optics, "measurements.nc"))], log)
-    for measured, optics in sorted({RUNS[name][:2] for name in args.runs}):
+    for measured, optics in sorted({RUNS[name][:2] for name in args.runs}
+                                   if not args.collect else ()):
         init = _file(out, measured, f"init_{optics}.nc")
         if not init.exists():
             run_command(["carve", str(_file(out, measured, "measurements.nc")),
                          "--optics", optics, *backend, "-o", str(init)], log)
-    if "mie" in {RUNS[name][0] for name in args.runs}:
+    if "mie" in {RUNS[name][0] for name in args.runs} and not args.collect:
         summary["loss_at_the_truth"] = loss_at_the_truth(
             {"mie": single_cloud_medium("mie"), "hg": single_cloud_medium("hg")},
             load_measurements(str(out / "measurements.nc")), 2_000_000)
@@ -105,11 +118,15 @@ def main() -> None:
     for name in args.runs:
         measured, optics, options = RUNS[name]
         files = _file(out, measured, "measurements.nc"), _file(out, measured, f"init_{optics}.nc")
+        result = str(out / f"{name}{suffix}.nc")
+        if args.collect:
+            summary["runs"][name] = {**error_over_time(result, minutes=(1, 2, 5, 10, 15, 30, 60)),
+                                     "collected": "from the result file by --collect"}
+            continue
         if args.backend != "cpu":  # compile the kernels first, outside the timed run
             run_command(["retrieve", str(files[0]), "--init", str(files[1]), "--iterations",
                          "2", "--photons", "20000", *options, *backend,
                          "-o", str(out / "warm_up.nc"), "--overwrite"], log)
-        result = str(out / f"{name}{suffix}.nc")
         run_command(["retrieve", str(files[0]), "--init", str(files[1]), "--truth",
                      str(_file(out, measured, "truth.nc")), "--time-limit",
                      str(60 * args.minutes), "--iterations", "100000", *options, *backend,
@@ -123,8 +140,9 @@ def main() -> None:
         summary["runs"] = {**earlier["runs"], **summary["runs"]}
         summary["commands"] = earlier["commands"] + log
     device = "2 CPU cores" if args.backend == "cpu" else f"one GPU ({args.backend})"
-    error_figure({LABELS[name]: out / f"{name}{suffix}.nc" for name in summary["runs"]},
-                 FIGURE.with_name(f"{FIGURE.stem}{suffix}.png"),
+    present = {LABELS[name]: out / f"{name}{suffix}.nc" for name in summary["runs"]
+               if (out / f"{name}{suffix}.nc").exists()}
+    error_figure(present, args.figure or FIGURE.with_name(f"{FIGURE.stem}{suffix}.png"),
                  "single cloud: Mie measurements retrieved with Mie optics and assuming HG, "
                  "and HG measurements with HG optics", device)
     write_result(summary, output, error_markdown)

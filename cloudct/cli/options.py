@@ -15,7 +15,7 @@ from cloudct.mc.backend import (
 )
 from cloudct.mc.render import single_cloud_medium
 from cloudct.medium import load_medium
-from cloudct.optics import DEFAULT_OPTICS, OPTICS, with_optics
+from cloudct.optics import DEFAULT_OPTICS, OPTICS, with_optics, with_phase_truncation
 
 
 def add_backend_option(p: argparse.ArgumentParser, workers: bool = False) -> None:
@@ -65,6 +65,24 @@ def add_optics_option(p: argparse.ArgumentParser, default: str = "") -> None:
         "0.99) or 'mie' (Mie albedos and phase functions); an optical medium keeps its own. "
         + (default or f"Default: a medium's recorded choice, else {DEFAULT_OPTICS!r}"),
     )
+
+
+def add_phase_truncation_option(p: argparse.ArgumentParser, what: str, default: str) -> None:
+    """``--phase-truncation DEGREES``: Mie phase functions cut flat within that angle of the
+    forward direction for the kernels; ``what`` says of which medium, ``default`` what
+    happens without the option (cloudct.optics)."""
+    p.add_argument(
+        "--phase-truncation", type=float, metavar="DEGREES",
+        help=f"cut the forward diffraction peak of {what}'s Mie phase functions flat at this "
+        "angle, the extinction and albedo delta-scaled (faster, HG-like noise; a bias of the "
+        "order of the angle in the images' detail: docs/benchmarks.md, 'Mie optics'); 0 "
+        f"keeps the full peak. Default: {default}",
+    )
+
+
+def truncated_as_asked(medium: xr.Dataset, degrees: float | None) -> xr.Dataset:
+    """``medium`` with ``--phase-truncation`` applied (None: as it is)."""
+    return medium if degrees is None else with_phase_truncation(medium, degrees)
 
 
 def medium_from_options(path: str | None, optics: str | None) -> xr.Dataset:

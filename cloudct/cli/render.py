@@ -10,8 +10,10 @@ import numpy as np
 from cloudct.cli.options import (
     add_distributed_options,
     add_optics_option,
+    add_phase_truncation_option,
     chosen_backend,
     medium_from_options,
+    truncated_as_asked,
 )
 from cloudct.distributed import close_client, connect, executor
 from cloudct.mc.render import METHODS, render, save_images, save_previews
@@ -24,7 +26,8 @@ from cloudct.netcdf import save_netcdf
 
 def _cli_render(args: argparse.Namespace) -> int:
     """``cloudct render``: images of a medium for a scene, to netCDF and PNG previews."""
-    medium = medium_from_options(args.medium, args.optics)
+    medium = truncated_as_asked(medium_from_options(args.medium, args.optics),
+                                args.phase_truncation)
     if args.scene is None:
         edges = cell_edges(medium)
         scene = single_cloud_scene(
@@ -166,6 +169,7 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
                    "in this direction [deg]: zenith from +z (< 90 leaving the top, > 90 "
                    "arriving at the bottom), azimuth from +x toward +y; repeat for more")
     add_optics_option(p)
+    add_phase_truncation_option(p, "the medium", "as the medium records, else none")
     add_distributed_options(p)
     p.set_defaults(func=_cli_render)
 

@@ -16,6 +16,7 @@ from cloudct.cli.options import (
     add_backend_option,
     add_distributed_options,
     add_optics_option,
+    add_phase_truncation_option,
     chosen_backend,
     measured_optics,
     medium_from_options,
@@ -28,7 +29,7 @@ from cloudct.mc.scene import build_scene
 from cloudct.measurements import load_measurements, save_measurements, synthesize_measurements
 from cloudct.medium import cell_edges, load_medium, save_medium
 from cloudct.netcdf import load_netcdf, require_variables
-from cloudct.optics import DEFAULT_OPTICS, optics_name, to_optical
+from cloudct.optics import DEFAULT_OPTICS, optics_name, phase_truncation, to_optical
 from cloudct.retrieval.carving import carve, initial_medium
 from cloudct.retrieval.config import (
     AUTO,
@@ -104,6 +105,7 @@ OPTION_FIELDS = {dest: dest for dest in (
     "step_decay", "estimator", "pixel_sampling", "averaging", "averaging_decay", "seed",
     "checkpoint_every", "transmittance", "iteration_seconds", "schedule", "significance",
     "plateau", "photon_growth", "photon_cap", "step_floor", "max_change", "sparsity_schedule",
+    "phase_truncation",
 )} | {"fresh_gradient": "recycle_gradient"}  # --fresh-gradient: recycle_gradient = false
 OPTION_NAMES = {field: "--" + dest.replace("_", "-") for dest, field in OPTION_FIELDS.items()}
 
@@ -231,7 +233,8 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
             except ResumeConflict as err:
                 raise ValueError(_resume_conflict(err.conflicts, origins)) from None
         else:
-            settings = settings_for_optics(settings, optics_name(initial))
+            settings = settings_for_optics(settings, optics_name(initial),
+                                           phase_truncation(initial))
             run = Retrieval(measurements, initial, config_from_settings(settings), truth=truth,
                             **where)
         result = run.run(checkpoint=checkpoint, progress=None)
@@ -388,6 +391,9 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
     p.add_argument("--averaging-decay", type=float,
                    help="--averaging ema: weight of the average so far at each iterate "
                         f"(default {c.averaging_decay})")
+    add_phase_truncation_option(
+        p, "the retrieval's medium",
+        "as the initial medium records; a Mie medium that records none: 3 (said in the log)")
     p.add_argument("--transmittance", choices=TRANSMITTANCE,
                    help="the transmittance the retrieval assumes: exponential, or medium: the "
                         "model and mode field the measurements record (docs/transmittance.md;"

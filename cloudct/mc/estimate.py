@@ -51,7 +51,7 @@ from cloudct.mc.forward import RENDER, forward_batches, sensor_batches
 from cloudct.mc.scene import Scene, check_scene, periodic_copy_ranges
 from cloudct.mc.sun import SunArrays, sun_arrays
 from cloudct.medium import cell_edges, is_optical, validate_medium
-from cloudct.optics import kernel_arrays, to_optical
+from cloudct.optics import cloud_extinction_scale, kernel_arrays, to_optical
 from cloudct.physics.mixing import OpticalGrid
 from cloudct.physics.phase import TABULATED, PhaseBank
 
@@ -71,6 +71,9 @@ class KernelInputs(NamedTuple):
     periodic: bool
     ground: float  # ground albedo, -1 for no ground
     edges: tuple[np.ndarray, np.ndarray, np.ndarray]
+    #: d beta' / d beta of a phase truncation (:func:`cloudct.optics.cloud_extinction_scale`;
+    #: None: 1), float64[x, y, z]
+    cloud_scale: np.ndarray | None = None
 
 
 def kernel_inputs(
@@ -83,7 +86,7 @@ def kernel_inputs(
     :func:`default_aim_fraction`). ``entry_cloud_share``: the forward photons' share m in
     [0, 1) entering where the clouds are (:func:`cloudct.mc.sun.sun_arrays`; 0: uniform
     entry)."""
-    grid, bank, edges = medium_arrays(medium)
+    grid, bank, edges, cloud_scale = medium_arrays(medium)
     check_scene(scene, edges)
     if aim_fraction is None:
         aim_fraction = default_aim_fraction(bank)
@@ -96,18 +99,28 @@ def kernel_inputs(
         periodic=scene.periodic,
         ground=-1.0 if scene.ground_albedo is None else float(scene.ground_albedo),
         edges=edges,
+        cloud_scale=cloud_scale,
     )
 
 
 def medium_arrays(
     medium: xr.Dataset,
-) -> tuple[OpticalGrid, PhaseBank, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """A validated medium's kernel arrays and cell edges (microphysical media converted
-    with their optics)."""
+) -> tuple[OpticalGrid, PhaseBank, tuple[np.ndarray, np.ndarray, np.ndarray],
+           np.ndarray | None]:
+    """A validated medium's kernel arrays, cell edges and the chain-rule factor of its
+    phase truncation (:func:`cloudct.optics.cloud_extinction_scale`; microphysical media
+    converted with their optics)."""
     validate_medium(medium)
     optical = medium if is_optical(medium) else to_optical(medium)
     grid, bank = kernel_arrays(optical)
-    return grid, bank, cell_edges(optical)
+    return grid, bank, cell_edges(optical), cloud_extinction_scale(optical)
+
+
+def per_cloud_extinction(k: KernelInputs, gradients: np.ndarray) -> np.ndarray:
+    """Gradients (..., x, y, z) with respect to the cloud extinction the kernels traced
+    turned into gradients with respect to the medium's: times d beta' / d beta where the
+    medium's phase functions are truncated (:mod:`cloudct.optics`), else unchanged."""
+    return gradients if k.cloud_scale is None else gradients * k.cloud_scale
 
 
 def default_aim_fraction(bank: PhaseBank) -> float:

@@ -38,6 +38,7 @@ from cloudct.mc.estimate import (
     check_residual,
     kernel_inputs,
     mean_and_std_error,
+    per_cloud_extinction,
 )
 from cloudct.mc.executor import BatchExecutor
 from cloudct.mc.forward import GRADIENT
@@ -96,7 +97,7 @@ def score_function_gradient(
                                  desc="gradient")
     info = {"photons": per_batch * batches, **run, "aim_fraction": k.cams.aim_fraction,
             "entry_cloud_share": k.sun.cloud_share}
-    return (*mean_and_std_error(gradients), info)
+    return (*mean_and_std_error(per_cloud_extinction(k, gradients)), info)
 
 
 def _camera_gradient(
@@ -127,7 +128,7 @@ def _camera_gradient(
     )
     samples = per_batch * batches * (1 if table.pixel.size else pixels)
     info = {"photons": samples, **run, "pixel_sampling": pixel_sampling}
-    return (*mean_and_std_error(gradients), info)
+    return (*mean_and_std_error(per_cloud_extinction(k, gradients)), info)
 
 
 def drt_gradient(

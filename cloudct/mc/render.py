@@ -25,7 +25,7 @@ from cloudct.mc.forward import RENDER
 from cloudct.mc.scene import Scene
 from cloudct.mc.sun import check_cloud_share
 from cloudct.netcdf import save_netcdf
-from cloudct.optics import DEFAULT_OPTICS, optics_name, to_optical
+from cloudct.optics import DEFAULT_OPTICS, PHASE_TRUNCATION, optics_name, to_optical
 
 RADIANCE_UNITS = "1"  # in units of the solar irradiance perpendicular to the rays, per sr
 METHODS = ("forward", "backward")
@@ -156,7 +156,8 @@ def render_batches(
     info = dict(
         method=method, photons=per_batch * batches, seed=seed, batches=batches,
         rr_depth=rr_depth, rr_survival=rr_survival, aim_fraction=k.cams.aim_fraction,
-        entry_cloud_share=k.sun.cloud_share, **run,
+        entry_cloud_share=k.sun.cloud_share,
+        phase_truncation=float(medium.attrs.get(PHASE_TRUNCATION, 0.0)), **run,
     )
     return images, info
 

@@ -146,7 +146,7 @@ def domain_means(
             | (np.abs(angles[:, 0] - 90.0) < 1e-6)):
         raise ValueError("probe zenith angles must be in [0, 90) (leaving the top) or "
                          f"(90, 180] (arriving at the bottom), got {angles[:, 0].tolist()}")
-    grid, bank, edges = medium_arrays(medium)
+    grid, bank, edges, _ = medium_arrays(medium)  # radiances: no gradient to scale
     periodic = boundary == "periodic"
     if aim_fraction is None:
         aim_fraction = default_aim_fraction(bank)

@@ -14,7 +14,8 @@ Kinds (``PhaseBank.kind``):
 
 The numba functions take no Python objects and allocate nothing, so that ``numba.cuda``
 kernels can call them too. The Python-side builder :func:`phase_bank` assembles a
-:class:`PhaseBank` from a list of specifications.
+:class:`PhaseBank` from a list of specifications; :func:`truncated_peak` cuts the forward
+peak of a tabulated phase function flat (delta-M-like truncation, see its documentation).
 """
 
 from __future__ import annotations
@@ -246,6 +247,45 @@ def tabulated_nodes(
     a, b = mu[:-1], mu[1:]
     g = TWO_PI * np.sum(h / 6.0 * ((2.0 * a + b) * p[:-1] + (a + 2.0 * b) * p[1:]))
     return mu, p, cdf, float(g)
+
+
+def truncated_peak(
+    angles_deg: np.ndarray, values: np.ndarray, truncation_deg: float
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """A tabulated phase function with its forward peak cut flat at ``truncation_deg``.
+
+    Within the truncation angle the phase function is replaced by its value there,
+    p'(mu) = min(p(mu), p(mu_t)) for mu > mu_t (a node is added at theta_t), and the
+    share f of scattering that this removes (of the piecewise-linear interpolant, as
+    :func:`tabulated_nodes` integrates it) is treated as no scattering at all: with the
+    extinction beta (1 - omega f) and the single-scattering albedo omega (1 - f) /
+    (1 - omega f) the light scattered into the peak goes on unscattered (the delta-M
+    similarity of Wiscombe 1977, J. Atmos. Sci. 34, 1408, with a flat cut instead of a
+    Legendre fit). Directions within theta_t of the incoming one are then exchanged for
+    no deflection: a bias of order theta_t in the angular detail of the radiance, for a
+    phase function whose largest value drops from ~10^3 per sr to p(theta_t) / (1 - f).
+
+    Returns ``(angles, values, f)``: the angles with theta_t added (degrees), the cut
+    values (not renormalised: :func:`tabulated_nodes` does it) and f in [0, 1).
+    """
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    p = np.asarray(values, dtype=np.float64)
+    if not 0.0 < truncation_deg < 90.0:
+        raise ValueError(f"the truncation angle must be in (0, 90) degrees, got {truncation_deg}")
+    mu = np.cos(np.radians(angles))
+    mu_t = math.cos(math.radians(truncation_deg))
+    at_t = float(np.interp(mu_t, mu[::-1], p[::-1]))  # linear in mu, as evaluated
+    if truncation_deg not in angles:
+        j = int(np.searchsorted(angles, truncation_deg))
+        angles = np.insert(angles, j, truncation_deg)
+        p = np.insert(p, j, at_t)
+        mu = np.insert(mu, j, mu_t)
+    cut = np.where(angles < truncation_deg, np.minimum(p, at_t), p)
+
+    def mass(q: np.ndarray) -> float:
+        return float(np.sum(0.5 * (mu[:-1] - mu[1:]) * (q[:-1] + q[1:])))
+
+    return angles, cut, 1.0 - mass(cut) / mass(p)
 
 
 def phase_bank(entries: Sequence[tuple]) -> PhaseBank:

@@ -38,6 +38,7 @@ from cloudct.mc.estimate import (
     check_residual,
     images_shape,
     kernel_inputs,
+    per_cloud_extinction,
     register_batch_kernel,
     voxels_shape,
 )
@@ -174,8 +175,10 @@ def _replay(
     out = np.zeros((b, *BATCH_KERNELS[kernel].shape(k, args)))
     run = batch_runner(kernel, backend, k, sampling, store.per_batch, args, out, events)
     wall = run_batches(run, store.per_batch, b, progress, unit="path", desc=desc)
-    if residual is not None and store.variable is not None:
-        out[:, ~store.variable] = 0.0  # connections hold no crossings of frozen voxels
+    if residual is not None:
+        out = per_cloud_extinction(k, out)
+        if store.variable is not None:
+            out[:, ~store.variable] = 0.0  # connections hold no crossings of frozen voxels
     summary = weight_summary(log_r, store.batches)
     ess = summary_ess(summary)[0]
     info = {

@@ -129,6 +129,9 @@ class RetrievalConfig:
     averaging_decay: float = 0.9  # "ema": weight of the average so far at each iterate
     transmittance: str = "exponential"  # or "medium": the measurements' transmittance model
     # and mode field (differentiated by the score function or DRT)
+    phase_truncation: float | None = None  # degrees: the Mie phase functions' forward peak
+    # cut flat for the retrieval's paths (cloudct.optics; 0: the full peak; None: as the
+    # initial medium records)
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -142,6 +145,9 @@ class RetrievalConfig:
             setattr(self, name, tuple(kind(v) for v in values))
         if self.sparsity is None:
             self.sparsity = 0.0 if quasi_newton else SPARSITY
+        if self.phase_truncation is not None and not 0.0 <= self.phase_truncation < 90.0:
+            raise ValueError(f"phase_truncation must be in [0, 90) degrees, got "
+                             f"{self.phase_truncation}")
         if self.transmittance not in TRANSMITTANCE:
             raise ValueError(f"transmittance must be one of {TRANSMITTANCE}, got "
                              f"{self.transmittance!r}")
@@ -279,24 +285,44 @@ class RetrievalConfig:
         return None
 
 
+#: The cut (degrees) of the phase functions' forward peak that a retrieval of a medium of
+#: these cloud optics takes, where its settings name none and the medium records none: on
+#: 2 cores the single cloud's Mie measurements are retrieved in 15 minutes to epsilon 0.56
+#: with the peak cut at 3 degrees, 0.66-0.69 with the full peak (docs/benchmarks.md, "Mie
+#: optics"; docs/optics.md, "Cutting the peak").
+OPTICS_TRUNCATION = {"mie": 3.0}
 #: The gradient estimator a retrieval takes, where its settings name none, for a medium of
-#: these cloud optics: with Mie optics sample matching's gradient has ~560x the noise it
-#: has with HG optics, the score function's 29x, and per second the score function is the
-#: most efficient (docs/benchmarks.md, "Mie optics").
+#: these cloud optics traced with the full peak: with Mie optics sample matching's gradient
+#: has ~560x the noise it has with HG optics, the score function's 29x, and per second the
+#: score function is the most efficient (docs/benchmarks.md, "Mie optics"). With the peak
+#: cut the defaults of HG optics hold.
 OPTICS_ESTIMATOR = {"mie": "score"}
 
 
-def settings_for_optics(settings: dict, optics: str) -> dict:
+def settings_for_optics(settings: dict, optics: str, recorded_truncation: float = 0.0) -> dict:
     """``settings`` (:class:`RetrievalConfig`'s keyword arguments) for a medium of cloud
-    ``optics``: with :data:`OPTICS_ESTIMATOR`'s estimator at every stage where they name
-    neither an estimator nor a pixel sampling (said in one line of the ``cloudct`` log),
-    else as they are."""
+    ``optics`` whose phase functions are cut at ``recorded_truncation`` degrees (0: the
+    full peak): with :data:`OPTICS_TRUNCATION`'s cut where they name no ``phase_truncation``
+    and the medium records none, then, where the peak stays full, with
+    :data:`OPTICS_ESTIMATOR`'s estimator at every stage where they name neither an
+    estimator nor a pixel sampling; each default taken is said in one line of the
+    ``cloudct`` log."""
+    log = logging.getLogger("cloudct")
+    out = dict(settings)
+    cut = out.get("phase_truncation")
+    if cut is None:
+        cut = recorded_truncation
+        if cut == 0.0 and optics in OPTICS_TRUNCATION:
+            cut = out["phase_truncation"] = OPTICS_TRUNCATION[optics]
+            log.info("phase truncation %g degrees: the medium has %s optics, whose forward "
+                     "peak makes the gradient mostly noise; the retrieval's paths see it cut "
+                     "(phase_truncation = 0 keeps it; docs/optics.md)", cut, optics)
     name = OPTICS_ESTIMATOR.get(optics)
-    if name is None or settings.get("estimator") is not None \
-            or settings.get("pixel_sampling") is not None:
-        return settings
-    stages = len(settings.get("stages", RetrievalConfig.stages))
-    logging.getLogger("cloudct").info(
-        "estimator %s: the medium has %s optics, with which sample matching's gradient is "
-        "mostly noise (docs/benchmarks.md, \"Mie optics\")", name, optics)
-    return {**settings, "estimator": (name,) * stages}
+    if name is None or cut > 0.0 or out.get("estimator") is not None \
+            or out.get("pixel_sampling") is not None:
+        return out
+    stages = len(out.get("stages", RetrievalConfig.stages))
+    log.info("estimator %s: the medium has %s optics with the full forward peak, with which "
+             "sample matching's gradient is mostly noise (docs/benchmarks.md, \"Mie optics\")",
+             name, optics)
+    return {**out, "estimator": (name,) * stages}

@@ -107,6 +107,9 @@ RUN_KEYS = {k.name: k for k in (
              "iterate"),
     _run_key("transmittance", str, "exponential, or medium: the measurements' transmittance "
              "model and mode field (estimator score or drt, no recycling)"),
+    _run_key("phase_truncation", float, "degrees: Mie phase functions' forward peak cut flat "
+             "for the retrieval's paths; 0 keeps it (unset: as the initial medium records; a "
+             "Mie medium that records none: 3)", 3.0),
     _run_key("seed", int, "seed of the photons: the same seed repeats the same iterates"),
     _run_key("checkpoint_every", int, "iterations between checkpoints"),
     _run_key("time_limit", float, "seconds of wall time after which the run stops (unset: "

@@ -33,7 +33,7 @@ from cloudct.mc.traversal import require_smooth_flight_density
 from cloudct.measurements import assumed_transmittance, measured_transmittance
 from cloudct.medium import cell_edges, transmittance_model, validate_medium
 from cloudct.netcdf import InputFileError, load_netcdf, require_variables, save_netcdf
-from cloudct.optics import kernel_arrays, optics_name
+from cloudct.optics import kernel_arrays, optics_name, phase_truncation, with_phase_truncation
 from cloudct.retrieval.config import AUTO, RetrievalConfig, settings_for_optics
 from cloudct.retrieval.config_file import check_resume, config_from_json, config_to_toml
 from cloudct.retrieval.loss import (
@@ -142,9 +142,12 @@ class Retrieval:
         # resolved once, here (on the workers with a client)
         self.backend = backend if client is not None else resolve_backend(backend)
         self.client = client
-        self.config = config or RetrievalConfig(**settings_for_optics({}, optics_name(initial)))
+        self.config = config or RetrievalConfig(
+            **settings_for_optics({}, optics_name(initial), phase_truncation(initial)))
         self.measurements = measurements
         self.template = assumed_transmittance(initial, measurements, self.config.transmittance)
+        if self.config.phase_truncation is not None:
+            self.template = with_phase_truncation(self.template, self.config.phase_truncation)
         # before any work: the score function does not differentiate the linear mix
         require_smooth_flight_density(kernel_arrays(self.template)[0], "score-function gradients")
         self.mask = (
