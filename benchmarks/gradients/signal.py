@@ -28,7 +28,12 @@ camera paths in all) and ``residual`` for pixels drawn in proportion to |residua
 
     python -m benchmarks gradients.signal [--pixel-blocks 2] \
         [--runs score:200000 drt:200000 sm:200000 sm:200000:residual] [--start MEDIUM.nc] \
-        [--optics hg|mie] [--output benchmarks/results/gradient_signal]
+        [--optics hg|mie] [--truncation DEG] [--output benchmarks/results/gradient_signal]
+
+``--truncation DEG`` (with ``--optics mie``): the start's phase functions cut flat at DEG
+degrees for every estimate and the residual's images (``phase_truncation``,
+:mod:`cloudct.optics`), as a retrieval with that setting traces them; the measurements keep
+the full peak.
 """
 
 from __future__ import annotations
@@ -49,6 +54,7 @@ from cloudct.mc.gradient import (
 from cloudct.mc.render import render, single_cloud_medium
 from cloudct.mc.scene import Scene
 from cloudct.medium import load_medium
+from cloudct.optics import with_phase_truncation
 from cloudct.retrieval.carving import carve, initial_medium
 from cloudct.retrieval.loop import coarse_measurements
 from cloudct.retrieval.optimizers import block_mean
@@ -84,7 +90,9 @@ def pooled_signal(estimates: list[tuple[np.ndarray, np.ndarray]], target: np.nda
 def markdown(result: dict) -> str:
     lines = [
         f"{result['machine']}, {result['date']}: `{result['command']}`", "",
-        f"{result.get('optics', 'hg')} optics; start: "
+        f"{result.get('optics', 'hg')} optics"
+        + (f" cut at {result['truncation']} degrees" if result.get("truncation") else "")
+        + "; start: "
         f"{result['start'] or 'constant carved hull'}, {result['pixel_blocks']}x"
         f"{result['pixel_blocks']} pixel blocks; pooled signal |g|^2 per voxel block size: "
         + ", ".join(f"{vb}: {s['signal']:.3g} +- {s['signal_spread']:.2g}"
@@ -117,6 +125,8 @@ def main() -> None:
                              "is the hull) instead of the constant carved start")
     parser.add_argument("--optics", choices=("hg", "mie"), default="hg",
                         help="the single cloud's optics, of the truth and the start alike")
+    parser.add_argument("--truncation", type=float, default=0.0,
+                        help="Mie: cut the start's forward peak at this many degrees")
     parser.add_argument("--output", default=str(RESULTS / "gradient_signal"))
     args = parser.parse_args()
 
@@ -127,6 +137,8 @@ def main() -> None:
         initial = initial_medium(carve(measurements, truth, profile="constant"), truth)
     else:
         initial = load_medium(args.start)
+    if args.truncation:
+        initial = with_phase_truncation(initial, args.truncation)
     data = coarse_measurements(measurements, args.pixel_blocks)
     scene = Scene.from_dataset(data)
     images = render(initial, scene, photons=args.residual_photons, seed=11)
@@ -156,7 +168,7 @@ def main() -> None:
         print(f"{spec}: {seconds:.2f} s per estimate", flush=True)
 
     result = {**run_header(args), "pixel_blocks": args.pixel_blocks, "start": args.start,
-              "optics": args.optics, "pooled": {}, "rows": []}
+              "optics": args.optics, "truncation": args.truncation, "pooled": {}, "rows": []}
     for vb in VOXEL_BLOCKS:
         target = block_mean(towards_truth, hull, vb)[hull]
         blocked = [tuple(block_mean(g, hull, vb)[hull] for g in run[4]) for run in runs]
