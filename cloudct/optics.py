@@ -267,11 +267,10 @@ def with_phase_truncation(medium: xr.Dataset, degrees: float) -> xr.Dataset:
     return out
 
 
-def _peak_fractions(ds: xr.Dataset) -> tuple[list[tuple], np.ndarray | None]:
-    """The tabulated bank entries of the cloud's phase functions and, with a truncation,
-    the share f of scattering each one's cut removes (None without)."""
+def _peak_fractions(ds: xr.Dataset, truncation: float) -> tuple[list[tuple], np.ndarray | None]:
+    """The tabulated bank entries of the cloud's phase functions and, with a truncation
+    (degrees, > 0), the share f of scattering each one's cut removes (None without)."""
     angles = ds["scattering_angle"].values
-    truncation = phase_truncation(ds)
     if truncation == 0.0:
         return [("tabulated", angles, row) for row in ds["cloud_phase"].values], None
     cut = [truncated_peak(angles, row, truncation) for row in ds["cloud_phase"].values]
@@ -293,26 +292,34 @@ def _delta_scaled(ds: xr.Dataset, cloud: xr.DataArray, fractions: np.ndarray | N
 def cloud_extinction_scale(optical_medium: xr.Dataset) -> np.ndarray | None:
     """d beta' / d beta per voxel, float64[x, y, z]: the factor between a gradient with
     respect to the kernels' (delta-scaled) cloud extinction and one with respect to the
-    medium's; None where the medium has no phase truncation (the factor is 1)."""
-    if "cloud_phase" not in optical_medium or phase_truncation(optical_medium) == 0.0:
-        return None
-    cloud = optical_medium["cloud_extinction"].transpose(*GRID)
-    return _delta_scaled(optical_medium, cloud, _peak_fractions(optical_medium)[1])[2]
+    medium's; None where the medium has no phase truncation (the factor is 1). The third
+    item of :func:`kernel_arrays_and_scale`, which estimators take with the arrays."""
+    return kernel_arrays_and_scale(optical_medium)[2]
 
 
 def kernel_arrays(optical_medium: xr.Dataset) -> tuple[OpticalGrid, PhaseBank]:
-    """The numba kernels' view of an optical medium.
+    """The numba kernels' view of an optical medium: ``(grid, bank)`` of
+    :func:`kernel_arrays_and_scale`."""
+    return kernel_arrays_and_scale(optical_medium)[:2]
+
+
+def kernel_arrays_and_scale(
+    optical_medium: xr.Dataset,
+) -> tuple[OpticalGrid, PhaseBank, np.ndarray | None]:
+    """The numba kernels' view of an optical medium, and the chain-rule factor of its phase
+    truncation (:func:`cloud_extinction_scale`), the cut computed once.
 
     Args:
         optical_medium: a medium with an optical cloud description (see :func:`to_optical`).
 
     Returns:
-        ``(grid, bank)``. Type 0 is air: ``air_extinction`` broadcast to 3D, ``air_albedo``,
+        ``(grid, bank, scale)``. Type 0 is air: ``air_extinction`` broadcast to 3D, ``air_albedo``,
         bank row 0 (Rayleigh). Type 1 is cloud: ``cloud_extinction``, ``cloud_albedo`` and
         either one HG bank row per distinct ``cloud_g`` value or one tabulated row per row
         of ``cloud_phase`` (bank row 1 + ``cloud_phase_index``), cut and delta-scaled where
         the medium has a ``phase_truncation`` (module documentation). Arrays are
-        C-contiguous float64 (int32 phase indices).
+        C-contiguous float64 (int32 phase indices). ``scale``: d beta' / d beta per voxel,
+        None without a truncation.
 
     Raises:
         ValueError: the medium has no optical cloud description.
@@ -328,8 +335,9 @@ def kernel_arrays(optical_medium: xr.Dataset) -> tuple[OpticalGrid, PhaseBank]:
     entries: list[tuple] = [("rayleigh",)]
     phase_index = np.zeros((2, *shape), dtype=np.int32)
     fractions = None
+    truncation = phase_truncation(ds)  # checked for HG media too
     if "cloud_phase" in ds:
-        tabulated, fractions = _peak_fractions(ds)
+        tabulated, fractions = _peak_fractions(ds, truncation)
         entries += tabulated
         phase_index[1] = 1 + ds["cloud_phase_index"].transpose(*GRID).values
     else:
@@ -337,8 +345,7 @@ def kernel_arrays(optical_medium: xr.Dataset) -> tuple[OpticalGrid, PhaseBank]:
         entries += [("hg", gv) for gv in gs]
         phase_index[1] = 1 + inverse.reshape(shape)
 
-    phase_truncation(ds)  # checked for HG media too
-    cloud_extinction, cloud_albedo, _ = _delta_scaled(ds, cloud, fractions)
+    cloud_extinction, cloud_albedo, scale = _delta_scaled(ds, cloud, fractions)
     extinction = np.stack([_on_grid(ds["air_extinction"], cloud), cloud_extinction])
     albedo = np.stack([_on_grid(ds["air_albedo"], cloud), cloud_albedo])
     grid = OpticalGrid(
@@ -350,7 +357,7 @@ def kernel_arrays(optical_medium: xr.Dataset) -> tuple[OpticalGrid, PhaseBank]:
         phase_index=np.ascontiguousarray(phase_index),
         **_transmittance_arrays(ds, cloud),
     )
-    return grid, phase_bank(entries)
+    return grid, phase_bank(entries), scale
 
 
 def _transmittance_arrays(ds: xr.Dataset, cloud: xr.DataArray) -> dict[str, np.ndarray]:

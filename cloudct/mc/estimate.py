@@ -51,7 +51,7 @@ from cloudct.mc.forward import RENDER, forward_batches, sensor_batches
 from cloudct.mc.scene import Scene, check_scene, periodic_copy_ranges
 from cloudct.mc.sun import SunArrays, sun_arrays
 from cloudct.medium import cell_edges, is_optical, validate_medium
-from cloudct.optics import cloud_extinction_scale, kernel_arrays, to_optical
+from cloudct.optics import kernel_arrays_and_scale, to_optical
 from cloudct.physics.mixing import OpticalGrid
 from cloudct.physics.phase import TABULATED, PhaseBank
 
@@ -112,8 +112,8 @@ def medium_arrays(
     converted with their optics)."""
     validate_medium(medium)
     optical = medium if is_optical(medium) else to_optical(medium)
-    grid, bank = kernel_arrays(optical)
-    return grid, bank, cell_edges(optical), cloud_extinction_scale(optical)
+    grid, bank, scale = kernel_arrays_and_scale(optical)
+    return grid, bank, cell_edges(optical), scale
 
 
 def per_cloud_extinction(k: KernelInputs, gradients: np.ndarray) -> np.ndarray:

@@ -120,7 +120,7 @@ class RetrievalConfig:
     # None: SPARSITY, 0 with lbfgsb)
     estimator: tuple[str, ...] | None = None  # per stage: gradient estimator, one of
     # cloudct.mc.gradient.ESTIMATORS (None: "sm", or "score" where the gradient is replayed;
-    # a Mie medium's retrieval fills it first: settings_for_optics)
+    # a Mie medium with its full peak fills it first: settings_for_optics)
     pixel_sampling: str | None = None  # camera-side estimators: pixels "uniform" or
     # drawn in proportion to |residual| (cloudct.mc.pixel_sampling; None: "residual")
     averaging: str = "ema"  # iterate average (Retrieval.average): "none", "uniform"
