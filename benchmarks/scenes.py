@@ -3,7 +3,8 @@
 The seed paper's single cloud was the only scene the retrieval's defaults and the L1
 prior's weight were measured on. These scenes check whether they carry over; all get the
 single cloud's optics (Mie extinction at 0.672 micron, HG g = 0.85, cloud albedo 0.99,
-the file's air):
+the file's air), or with ``--optics mie`` Mie phase functions and albedos of their
+droplets (the measurements of a Mie retrieval, issue 38):
 
 - ``two_cumuli``: the two largest isolated cumuli of ``rico122x106x39`` after its
   stratocumulus (connected components of 851 and 817 cloudy voxels, 10-12 levels deep,
@@ -16,7 +17,8 @@ the file's air):
 
 Usage::
 
-    python -m benchmarks scenes two_cumuli [--output benchmarks/work/two_cumuli.nc]
+    python -m benchmarks scenes two_cumuli [--optics hg|mie] [--output FILE]  (default
+        benchmarks/work/two_cumuli.nc, two_cumuli_mie.nc with Mie optics)
     python -m benchmarks scenes stratocumulus [--output benchmarks/work/stratocumulus.nc]
 """
 
@@ -32,7 +34,7 @@ from scipy import ndimage
 from benchmarks.common import REPO, WORK
 from cloudct.les import read_les
 from cloudct.medium import save_medium
-from cloudct.optics import to_optical
+from cloudct.optics import OPTICS, to_optical
 
 LES = REPO.parent / "shared" / "data" / "les"
 #: two_cumuli: how many of the largest clouds to skip (the stratocumulus) and to keep, and
@@ -42,14 +44,15 @@ SKIP, KEEP, MARGIN = 1, 2, 2
 PATCH_START, PATCH_SIZE = 16, 32
 
 
-def single_cloud_optics(microphysics: xr.Dataset, title: str) -> xr.Dataset:
-    """The optical medium of a microphysical one with the single cloud's optics."""
-    optical = to_optical(microphysics, optics="hg")
+def cloud_optics(microphysics: xr.Dataset, title: str, optics: str = "hg") -> xr.Dataset:
+    """The optical medium of a microphysical one: with the single cloud's optics (``hg``),
+    or with Mie phase functions and albedos (``mie``)."""
+    optical = to_optical(microphysics, optics=optics)
     optical.attrs["title"] = title
     return optical
 
 
-def two_cumuli(les: xr.Dataset) -> xr.Dataset:
+def two_cumuli(les: xr.Dataset, optics: str = "hg") -> xr.Dataset:
     """The two cumuli scene (see the module documentation) of ``rico122x106x39``."""
     label, n = ndimage.label(les["lwc"].values > 0)
     sizes = ndimage.sum_labels(np.ones(label.shape), label, np.arange(1, n + 1))
@@ -65,17 +68,18 @@ def two_cumuli(les: xr.Dataset) -> xr.Dataset:
         for dim, b in zip(("x", "y", "z"), box, strict=True)
     }
     crop["z"] = slice(0, crop["z"].stop)  # from the field's bottom, as the single cloud
-    return single_cloud_optics(
-        microphysics.isel(crop), "two cumuli of rico122x106x39 (components 2 and 3 by size)"
+    return cloud_optics(
+        microphysics.isel(crop), "two cumuli of rico122x106x39 (components 2 and 3 by size)",
+        optics,
     )
 
 
-def stratocumulus(les: xr.Dataset) -> xr.Dataset:
+def stratocumulus(les: xr.Dataset, optics: str = "hg") -> xr.Dataset:
     """The stratocumulus patch (see the module documentation) of ``les_stcu``."""
     patch = slice(PATCH_START, PATCH_START + PATCH_SIZE)
-    return single_cloud_optics(
+    return cloud_optics(
         les.isel(x=patch, y=patch),
-        f"les_stcu columns {PATCH_START}-{PATCH_START + PATCH_SIZE - 1} in x and y",
+        f"les_stcu columns {PATCH_START}-{PATCH_START + PATCH_SIZE - 1} in x and y", optics,
     )
 
 
@@ -88,12 +92,16 @@ def main() -> None:
     parser.add_argument("scene", choices=sorted(SCENES))
     parser.add_argument("--les", default=None,
                         help="the LES file (default: the scene's, in ../shared/data/les)")
+    parser.add_argument("--optics", choices=OPTICS, default="hg",
+                        help="the single cloud's HG optics (default) or Mie optics")
     parser.add_argument("--output", default=None,
-                        help="medium netCDF (default: benchmarks/work/SCENE.nc)")
+                        help="medium netCDF (default: benchmarks/work/SCENE.nc, "
+                             "SCENE_mie.nc with Mie optics)")
     args = parser.parse_args()
     build, les_file = SCENES[args.scene]
-    medium = build(read_les(args.les or LES / les_file))
-    output = Path(args.output or WORK / f"{args.scene}.nc")
+    medium = build(read_les(args.les or LES / les_file), args.optics)
+    suffix = "" if args.optics == "hg" else f"_{args.optics}"
+    output = Path(args.output or WORK / f"{args.scene}{suffix}.nc")
     output.parent.mkdir(parents=True, exist_ok=True)
     save_medium(medium, output, overwrite=True)
     cloud = medium["cloud_extinction"].values

@@ -47,33 +47,24 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import RESULTS, markdown_table, run_header, write_result
-from benchmarks.scenes import LES, two_cumuli
+from benchmarks.scenes import LES, cloud_optics, two_cumuli
 from cloudct.les import bundled_single_cloud, read_les
 from cloudct.mc.gradient import score_function_gradient
 from cloudct.mc.render import render_batches
 from cloudct.mc.scene import single_cloud_scene
 from cloudct.medium import cell_edges
-from cloudct.optics import to_optical, with_phase_truncation
+from cloudct.optics import OPTICS, to_optical, with_phase_truncation
 from cloudct.retrieval.optimizers import block_mean
 
 BATCHES = 32
 
 
-def optics_pair(microphysics) -> dict:
-    """The HG (bundled single-cloud optics) and Mie optical media of a microphysical one."""
-    from benchmarks.scenes import single_cloud_optics
-
-    return {"hg": single_cloud_optics(microphysics, "HG g = 0.85"),
-            "mie": to_optical(microphysics, optics="mie")}
-
-
 def scenes() -> dict:
-    cumuli = two_cumuli(read_les(LES / "rico122x106x39.txt"))
-    cumuli_micro = cumuli[["lwc", "reff", "air_extinction", "air_albedo"]]
-    cumuli_micro.attrs = {k: v for k, v in cumuli.attrs.items()
-                          if k not in ("wavelength", "optics")}
-    return {"single_cloud": optics_pair(bundled_single_cloud()),
-            "two_cumuli": optics_pair(cumuli_micro)}
+    """The single cloud and the two cumuli, each with HG (the single cloud's) and Mie optics."""
+    les = read_les(LES / "rico122x106x39.txt")
+    single = bundled_single_cloud()
+    return {"single_cloud": {o: cloud_optics(single, "bundled single cloud", o) for o in OPTICS},
+            "two_cumuli": {o: two_cumuli(les, o) for o in OPTICS}}
 
 
 def scene_of(medium):

@@ -63,7 +63,7 @@ def field_piece(size: str):
     """The medium of one case (module documentation)."""
     import xarray as xr
 
-    from benchmarks.scenes import single_cloud_optics
+    from benchmarks.scenes import cloud_optics
     from cloudct.les import bundled_cloud_field
 
     les = bundled_cloud_field()  # the bundled copy of rico122x106x39
@@ -95,7 +95,7 @@ def field_piece(size: str):
             centres = z[0] - dz / 2 + (np.arange(levels) + 0.5) * dz * len(z) / levels
             les = les.sel(z=centres, method="nearest").assign_coords(
                 z=("z", centres, piece.z.attrs))
-    return single_cloud_optics(les, f"rico122x106x39 piece {size}")
+    return cloud_optics(les, f"rico122x106x39 piece {size}")
 
 
 def scene_for(medium):
