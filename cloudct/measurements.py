@@ -5,7 +5,8 @@ for users who bring their own images, is docs/measurements.md. :func:`validate_m
 checks it, :func:`save_measurements` and :func:`load_measurements` write and read it.
 
 :func:`synthesize_measurements` renders a medium with many photons
-(:func:`cloudct.mc.render.render`, forward estimator) and optionally adds camera noise
+(:func:`cloudct.mc.render.render`: the forward estimator, or the combined one, which keeps
+Mie optics' diffraction peak free of fireflies) and optionally adds camera noise
 (:class:`NoiseModel`). The result, a *measurement set*, is the render's images Dataset
 (``radiance`` over (view, row, col), the cameras as variables over ``view``, the sun and
 boundaries as attributes) with, in addition:
@@ -48,7 +49,7 @@ import numpy as np
 import xarray as xr
 
 from cloudct.mc.cameras import cameras_from_dataset
-from cloudct.mc.render import RADIANCE_UNITS, render
+from cloudct.mc.render import RADIANCE_UNITS, default_method, render
 from cloudct.mc.scene import Scene, single_cloud_scene
 from cloudct.medium import (
     MediumError,
@@ -140,8 +141,9 @@ def synthesize_measurements(
     batches: int = 32,
     progress: bool | None = None,
     backend: str = "cpu",
+    method: str | None = None,
 ) -> xr.Dataset:
-    """Synthetic measurements of ``medium``: a forward render plus optional camera noise.
+    """Synthetic measurements of ``medium``: a render plus optional camera noise.
 
     Args:
         medium: an optical medium (used as it is), or a microphysical one (converted with
@@ -160,6 +162,12 @@ def synthesize_measurements(
         progress: show a progress bar (None: only on a terminal).
         backend: where the render runs, ``"cpu"``, ``"cuda"`` or ``"auto"``
             (:mod:`cloudct.mc.backend`); recorded in the attribute ``backend``.
+        method: the render's estimator, ``"forward"`` or ``"combined"`` (forward photons
+            and as many backward paths, weighted by multiple importance sampling:
+            :mod:`cloudct.mc.combined`); None: combined for a medium with tabulated (Mie)
+            phase functions, whose diffraction peak gives the forward images fireflies,
+            else forward (:func:`cloudct.mc.render.default_method`). Recorded in the
+            attribute ``method``.
 
     Returns:
         The measurement set described in the module docstring.
@@ -183,8 +191,12 @@ def synthesize_measurements(
         scene = single_cloud_scene(
             np.array([e[0] for e in edges]), np.array([e[-1] for e in edges])
         )
+    if method is None:
+        method = default_method(medium)
+    if method not in ("forward", "combined"):
+        raise ValueError(f"method must be 'forward' or 'combined', got {method!r}")
     images = render(medium, scene, photons=photons, seed=seed, batches=batches,
-                    progress=progress, backend=backend)
+                    progress=progress, backend=backend, method=method)
 
     clean = images["radiance"].values
     mc_variance = images["radiance_std_error"].values ** 2

@@ -16,7 +16,9 @@
      paper Sec. 5.3), only the order of the additions into an element can differ: equal **to
      float64 rounding** (rtol 1e-12, atol 1e-12 x the largest element); vertex counts exact.
 
-   Orthographic cameras: renders and the three gradient estimators to float64 rounding.
+   Renders: forward (plain and aimed at the cameras), backward, and combined (both, weighted
+   by multiple importance sampling). Orthographic cameras: renders and the three gradient
+   estimators to float64 rounding.
 
    Path recycling (:mod:`cloudct.recycling.cuda_replay`, one thread per stored path; stores
    of pinhole and of orthographic cameras) against the CPU replay of the same store: log r
@@ -110,16 +112,19 @@ from cloudct.mc.render import render_batches
 from cloudct.mc.estimate import kernel_inputs
 
 out = {"auto": resolve_backend("auto")}
+# renders: label, method, photons (samples per pixel), aim fraction, further arguments;
+# "combined": forward photons aimed at the cameras and backward samples, MIS-weighted
+RENDERS = (("forward", "forward", 256, None, {}), ("aimed", "forward", 256, 0.3, {}),
+           ("backward", "backward", 8, None, {}),
+           ("combined", "combined", 256, 0.3, {"pixel_samples": 8}))
 residual = np.random.default_rng(2).normal(size=(2, 6, 6))
 for tpb in (1, 32):
     ck.THREADS_PER_BLOCK = tpb
     for name, scene in scenes.items():
-        for label, method, n, aim in (("forward", "forward", 256, None),
-                                      ("aimed", "forward", 256, 0.3),
-                                      ("backward", "backward", 8, None)):
+        for label, method, n, aim, kw in RENDERS:
             out[f"{label}/{name}/tpb{tpb}"] = on_both(lambda b: render_batches(
                 medium, scene, photons=n, batches=4, method=method, aim_fraction=aim,
-                progress=False, backend=b))
+                progress=False, backend=b, **kw))
     for label, method, n in (("powerlaw", "forward", 256), ("powerlaw-backward", "backward", 8)):
         out[f"{label}/open/tpb{tpb}"] = on_both(lambda b: render_batches(
             power_law, scenes["open"], photons=n, batches=4, method=method, progress=False,
@@ -153,12 +158,10 @@ for tpb in (1, 32):
 ck.THREADS_PER_BLOCK, ck.SORT_PATHS = 32, True
 for name, scene in ortho_scenes.items():
     res = residual[:len(scene.cameras)]
-    for label, method, n, aim in (("forward", "forward", 256, None),
-                                  ("aimed", "forward", 256, 0.3),
-                                  ("backward", "backward", 8, None)):
+    for label, method, n, aim, kw in RENDERS:
         out[f"orthographic-{label}/{name}"] = on_both(lambda b: render_batches(
             medium, scene, photons=n, batches=4, method=method, aim_fraction=aim,
-            progress=False, backend=b))
+            progress=False, backend=b, **kw))
     for label, estimate, kw in (
         ("score", score_function_gradient, {"photons": 256, "aim_fraction": 0.3}),
         ("drt", drt_gradient, {"samples_per_pixel": 4}),
@@ -323,7 +326,7 @@ def simulated() -> dict:
 def test_simulator_is_the_cuda_backend(simulated):
     assert simulated["auto"] == "cuda"
     renders = [v for key, v in simulated.items()
-               if key.startswith(("forward/", "aimed/", "backward/"))]
+               if key.startswith(("forward/", "aimed/", "backward/", "combined/"))]
     assert renders and all(v["backend"] == "cuda" for v in renders)
 
 
@@ -337,7 +340,8 @@ def test_same_photon_same_path(simulated, key):
 
 @pytest.mark.parametrize(
     "key",
-    [f"{m}/{s}/tpb1" for m in ("forward", "aimed", "backward") for s in ("open", "periodic")]
+    [f"{m}/{s}/tpb1" for m in ("forward", "aimed", "backward", "combined")
+     for s in ("open", "periodic")]
     + ["powerlaw/open/tpb1", "powerlaw-backward/open/tpb1"]
     + ["gradient/sort0/tpb1", "gradient-aimed/sort0/tpb1", "gradient-powerlaw/sort0/tpb1"],
 )
@@ -351,7 +355,8 @@ def test_sequential_threads_match_cpu_bitwise(simulated, key):
 
 @pytest.mark.parametrize(
     "key",
-    [f"{m}/{s}/tpb32" for m in ("forward", "aimed", "backward") for s in ("open", "periodic")]
+    [f"{m}/{s}/tpb32" for m in ("forward", "aimed", "backward", "combined")
+     for s in ("open", "periodic")]
     + ["powerlaw/open/tpb32", "powerlaw-backward/open/tpb32"]
     + [f"{g}/{c}" for g in ("gradient", "gradient-aimed", "gradient-powerlaw")
        for c in ("sort1/tpb1", "sort0/tpb32", "sort1/tpb32")],
@@ -367,15 +372,15 @@ def test_reordered_threads_match_cpu_to_rounding(simulated, key):
 
 @pytest.mark.parametrize(
     "key",
-    [f"orthographic-{what}/{scene}" for what in ("forward", "aimed", "backward", "score",
-                                                 "drt", "sm")
+    [f"orthographic-{what}/{scene}" for what in ("forward", "aimed", "backward", "combined",
+                                                 "score", "drt", "sm")
      for scene in ("open", "periodic")],
 )
 def test_orthographic_cameras_match_cpu_to_rounding(simulated, key):
     """Orthographic cameras (one beside a pinhole over the open box, one over the periodic
-    slab): renders (forward, aimed at the cameras, backward), the score-function gradient
-    of aimed paths and the DRT and sample-matching gradients on the CUDA back end, blocks
-    of 32 threads: the CPU's samples summed in another order, equal to float64 rounding,
+    slab): renders (forward, aimed at the cameras, backward, combined), the score-function
+    gradient of aimed paths and the DRT and sample-matching gradients on the CUDA back end,
+    blocks of 32 threads: the CPU's samples summed in another order, equal to float64 rounding,
     with the same path vertices. (Path recycling with them: the replay tests below.)"""
     case = simulated[key]
     assert case["backend"] == "cuda"

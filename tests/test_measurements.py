@@ -53,8 +53,9 @@ def test_measurements_round_trip_through_netcdf(noisy, tmp_path):
     assert Scene.from_dataset(back) == Scene.from_dataset(noisy)
     assert back.attrs["sun_zenith"] == 20.0 and back.attrs["sun_azimuth"] == 30.0
     assert noise_model_from_attrs(back) == NoiseModel(2000.0, read_noise=8.0)
-    for name in ("wavelength", "photons", "seed", "noise_seed", "noise_model"):
+    for name in ("wavelength", "photons", "seed", "noise_seed", "noise_model", "method"):
         assert back.attrs[name] == noisy.attrs[name], name
+    assert noisy.attrs["method"] == "forward"  # HG optics: the forward estimator by default
     np.testing.assert_array_equal(back.attrs["medium_box"], noisy.attrs["medium_box"])
     np.testing.assert_array_equal(back.attrs["medium_shape"], [8, 8, 6])
     for name in ("radiance", "radiance_std_error", "radiance_noise_std"):

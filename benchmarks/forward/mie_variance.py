@@ -24,6 +24,12 @@ batches each, pooled. Reported:
   ones), their efficiency and firefly ratio, and their bias: the relative difference of
   each view mean and of the lit 4x4-binned pixels from the full Mie images (aimed), in
   units of the pair's standard error;
+- ``--combined SHARE [SHARE ...]``: also the combined estimator (forward photons and
+  backward pixel samples weighted by multiple importance sampling, both aiming:
+  :mod:`cloudct.mc.combined`) with SHARE backward paths per forward photon (samples per
+  pixel = SHARE x photons / pixels), for both optics: its efficiency (the two estimators'
+  wall time together), firefly ratio, the share of the light its backward paths carry, and
+  its agreement with the aimed forward images (Mie) or the plain ones (HG);
 - ``--piece-check``: on the test suite's piece of the single cloud (12 x 16 x 14 voxels,
   Mie optics of its own droplets, three 16 x 16 cameras), 4x4-binned pixels of an aimed
   render (3.2 million photons) against a plain one of 12.8 million and against the
@@ -34,7 +40,7 @@ Usage::
 
     python -m benchmarks forward.mie_variance [--photons 1000000] [--seeds 4] [--aim 0.1]
         [--gradient-photons 1000000] [--piece-check] [--gradient-only] [--truncation DEG]
-        [--output benchmarks/results/mie_variance]
+        [--combined SHARE ...] [--output benchmarks/results/mie_variance]
 """
 
 from __future__ import annotations
@@ -72,16 +78,33 @@ def scene_of(medium):
     return single_cloud_scene(np.array([e[0] for e in edges]), np.array([e[-1] for e in edges]))
 
 
-def pooled_render(medium, scene, photons: int, seeds: int, aim: float) -> dict:
-    batches, wall = [], 0.0
+def pooled_render(medium, scene, photons: int, seeds: int, aim: float | None, **kw) -> dict:
+    batches, wall, shares = [], 0.0, []
     for seed in range(1, seeds + 1):
         b, info = render_batches(medium, scene, photons=photons, batches=BATCHES, seed=seed,
-                                 aim_fraction=aim, progress=False)
+                                 aim_fraction=aim, progress=False, **kw)
         batches.append(b)
         wall += info["wall_time"]
+        shares.append(info.get("backward_share", 0.0))
     b = np.concatenate(batches)
     return {"mean": b.mean(axis=0), "var": b.var(axis=0, ddof=1) / len(b), "wall": wall,
-            "view_batches": b.mean(axis=(2, 3)), "binned": binned(b)}
+            "view_batches": b.mean(axis=(2, 3)), "binned": binned(b),
+            "backward_share": float(np.mean(shares)), **{k: info[k] for k in kw}}
+
+
+def combined_runs(medium, scene, args, aim: float | None, reference: dict, bright) -> dict:
+    """The combined estimator at each ``--combined`` share: summary, the share of light
+    its backward paths carry, and agreement with ``reference``."""
+    cam = scene.cameras[0]
+    pixels = len(scene.cameras) * cam.nrows * cam.ncols
+    out = {}
+    for share in args.combined:
+        run = pooled_render(medium, scene, args.photons, args.seeds, aim, method="combined",
+                            pixel_samples=max(1, round(share * args.photons / pixels)))
+        out[f"combined {share:g}"] = {
+            **summary(run, bright), "pixel_samples": run["pixel_samples"],
+            "backward_share": run["backward_share"], "agreement": agreement(run, reference)}
+    return out
 
 
 def binned(b: np.ndarray, n: int = 4) -> np.ndarray:
@@ -217,8 +240,12 @@ def markdown(result: dict) -> str:
     rows = []
     for name, s in result["scenes"].items():
         for optics in ("hg", "mie"):
-            for label in [k for k in ("plain", "aimed", "cut") if k in s[optics]]:
+            for label in [k for k in s[optics] if k in ("plain", "aimed", "cut")
+                          or k.startswith("combined")]:
                 r = s[optics][label]
+                if label.startswith("combined"):
+                    label = (f"{label} ({r['pixel_samples']} samples/px, backward "
+                             f"{100 * r['backward_share']:.0f} % of the light)")
                 rows.append([name, optics, label, f"{r['relative_variance']:.4f}",
                              f"{r['wall_s']:.1f}", f"{r['efficiency']:.3f}",
                              f"{r['firefly_median']:.1f} / {r['firefly_max']:.1f}",
@@ -236,6 +263,19 @@ def markdown(result: dict) -> str:
                          str(a["binned_count"])])
     lines += markdown_table(["scene", "optics", "max |z| view means", "mean z 4x4 bins",
                              "rms z 4x4 bins", "rms z lit bins", "bins"], rows)
+    combined = [(name, optics, label, r["agreement"]) for name, s in result["scenes"].items()
+                for optics in ("hg", "mie") for label, r in s[optics].items()
+                if label.startswith("combined")]
+    if combined:
+        lines += ["", "Combined against the aimed forward images (Mie) or the plain ones (HG):",
+                  ""]
+        rows = [[name, optics, label, f"{a['max_abs_view_z']:.2f}",
+                 f"{a['binned_z_mean']:+.3f}", f"{a['binned_z_rms']:.3f}",
+                 f"{a['binned_lit_z_rms']:.3f}", str(a["binned_count"])]
+                for name, optics, label, a in combined]
+        lines += markdown_table(["scene", "optics", "estimator", "max |z| view means",
+                                 "mean z 4x4 bins", "rms z 4x4 bins", "rms z lit bins",
+                                 "bins"], rows)
     if "truncation" in result:
         lines += ["", f"Mie with the peak cut at {result['truncation']} degrees against the "
                   "full Mie images (aimed), relative difference (z = over the pair's "
@@ -295,6 +335,9 @@ def main() -> None:
                         help="recompute only the gradient part of an existing --output")
     parser.add_argument("--truncation", type=float, default=0.0,
                         help="also render Mie with the peak cut at this many degrees")
+    parser.add_argument("--combined", type=float, nargs="+", default=[], metavar="SHARE",
+                        help="also the combined estimator with SHARE backward paths per "
+                        "forward photon (several: one run each)")
     parser.add_argument("--output", default=str(RESULTS / "mie_variance"))
     args = parser.parse_args()
     if args.gradient_only:
@@ -308,6 +351,8 @@ def main() -> None:
               "gradient_photons": args.gradient_photons, "scenes": {}}
     if args.truncation:
         result["truncation"] = args.truncation
+    if args.combined:
+        result["combined"] = args.combined
     for name, media in scenes().items():
         scene = scene_of(media["hg"])
         render_batches(media["mie"], scene, photons=64, progress=False)  # JIT warm-up
@@ -320,6 +365,10 @@ def main() -> None:
                 bright = plain["mean"] > 0.1 * plain["mean"].max(axis=(1, 2), keepdims=True)
             out[optics] = {"plain": summary(plain, bright), "aimed": summary(aimed, bright),
                            "agreement": agreement(plain, aimed)}
+            if args.combined:  # the aim fraction of the optics' default (Mie 0.1, HG 0)
+                out[optics].update(combined_runs(
+                    media[optics], scene, args, None, aimed if optics == "mie" else plain,
+                    bright))
             if optics == "mie" and args.truncation:
                 cut = pooled_render(with_phase_truncation(media["mie"], args.truncation),
                                     scene, args.photons, args.seeds, args.aim)

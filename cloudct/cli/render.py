@@ -48,12 +48,13 @@ def _cli_render(args: argparse.Namespace) -> int:
     try:
         # compile (or load from the numba cache) first, so that the reported rate is the
         # render's
+        warm_up = {} if args.method != "combined" else {"pixel_samples": 2}
         render(medium, scene, photons=2, method=args.method, batches=2, progress=False,
-               backend=backend, executor=spread)
+               backend=backend, executor=spread, **warm_up)
         images = render(
             medium, scene, photons=args.photons, method=args.method, seed=args.seed,
             batches=args.batches, aim_fraction=args.aim_fraction, progress=None,
-            backend=backend, executor=spread,
+            backend=backend, executor=spread, pixel_samples=args.pixel_samples,
         )
     finally:
         if client is not None:
@@ -66,10 +67,13 @@ def _cli_render(args: argparse.Namespace) -> int:
         where = (f", {images.attrs['workers']} workers, "
                  f"{images.attrs['bytes_to_workers'] / 2**20:.3g} MiB out, "
                  f"{images.attrs['bytes_from_workers'] / 2**20:.3g} MiB back")
+    count = f"{images.attrs['photons']} {'samples/px' if args.method == 'backward' else 'photons'}"
+    if args.method == "combined":
+        count += (f" and {images.attrs['pixel_samples']} samples/px, "
+                  f"{100 * images.attrs['backward_share']:.3g} % of the light by the backward")
     print(
         f"wrote {output} and {len(previews)} PNG previews in {previews[0].parent} "
-        f"({images.attrs['photons']} {'photons' if args.method == 'forward' else 'samples/px'}, "
-        f"{images.attrs['wall_time']:.1f} s, {rate:.3g}/s{where})"
+        f"({count}, {images.attrs['wall_time']:.1f} s, {rate:.3g}/s{where})"
     )
     return 0
 
@@ -79,7 +83,7 @@ def _render_fluxes(args: argparse.Namespace, medium, scene, output: Path) -> int
     (:func:`cloudct.mc.sensors.domain_means`) for the scene's sun, boundaries and ground."""
     if args.method != "forward" or args.workers or args.scheduler:
         raise ValueError("--fluxes and --probe run the forward method in this process "
-                         "(no --method backward, --workers or --scheduler)")
+                         "(no --method backward or combined, --workers or --scheduler)")
     means = domain_means(
         medium, directions=args.probe or [], sun=scene.sun, boundary=scene.boundary,
         ground_albedo=scene.ground_albedo, photons=args.photons, seed=args.seed,
@@ -151,8 +155,14 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", default="images.nc", help="output netCDF of images")
     p.add_argument("--png", help="directory for PNG previews (default: next to the output)")
     p.add_argument("--photons", type=int, default=1_000_000,
-                   help="forward photons, or backward samples per pixel")
-    p.add_argument("--method", choices=METHODS, default="forward")
+                   help="forward (and combined) photons, or backward samples per pixel")
+    p.add_argument("--method", choices=METHODS, default="forward",
+                   help="forward (local estimation), backward (next-event estimation to the "
+                   "sun) or combined (both, weighted by multiple importance sampling: the "
+                   "fewest fireflies with Mie optics)")
+    p.add_argument("--pixel-samples", type=int, default=None, metavar="N",
+                   help="combined: backward samples per pixel (default: 4 backward paths "
+                   "per photon, over the pixels)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--batches", type=int, default=32)
     p.add_argument("--aim-fraction", type=float, default=None, metavar="A",

@@ -36,7 +36,7 @@ def _cli_synth(args: argparse.Namespace) -> int:
     ds = synthesize_measurements(
         medium, scene, photons=args.photons, seed=args.seed, noise=noise,
         wavelength=args.wavelength, optics=args.optics, progress=None,
-        backend=chosen_backend(args),
+        backend=chosen_backend(args), method=args.method,
     )
     save_measurements(ds, output, overwrite=args.overwrite)
     noise_text = "no camera noise" if noise is None else (
@@ -44,7 +44,8 @@ def _cli_synth(args: argparse.Namespace) -> int:
     )
     print(
         f"wrote {output}: {ds.sizes['view']} views of {ds.sizes['row']}x{ds.sizes['col']}, "
-        f"{ds.attrs['photons']} photons on the {ds.attrs['backend']} back end, {noise_text}"
+        f"{ds.attrs['photons']} photons ({ds.attrs['method']}) on the {ds.attrs['backend']} "
+        f"back end, {noise_text}"
     )
     return 0
 
@@ -63,6 +64,11 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", default="measurements.nc", help="output netCDF")
     p.add_argument("--scene", help="scene netCDF from `cloudct scene` (default: nine cameras)")
     p.add_argument("--photons", type=int, default=DEFAULT_PHOTONS, help="forward photons")
+    p.add_argument("--method", choices=("forward", "combined"), default=None,
+                   help="the render's estimator: forward, or combined (the forward photons "
+                   "and as many backward paths, weighted by multiple importance sampling: "
+                   "no fireflies with Mie optics); default: combined with Mie optics, else "
+                   "forward")
     p.add_argument("--seed", type=int, default=0, help="seed of the render and the noise")
     p.add_argument(
         "--noise-electrons", type=float, metavar="E",

@@ -9,11 +9,13 @@ the single-scattered sunlight
 
     throughput * albedo * f_p(x, cos angle(sun travel, -ray)) * T(x -> sun) * F0,  F0 = 1,
 
-then continues in a direction drawn from the mixture phase function; at the Lambertian
-ground it collects throughput * A cos(theta0) / pi * T(ground -> sun) and bounces
-cosine-weighted. The same vertex routines as the forward estimator are used
-(:mod:`cloudct.mc.events`), with the same medium-independent Russian roulette. The direct
-view of the sun's disc is not part of the images (a delta the pixels never contain).
+then continues in a direction drawn from the mixture phase function (a share of them about
+the direction to the sun, weighted so that the images stay unbiased:
+:mod:`cloudct.mc.detector_sampling`); at the Lambertian ground it collects throughput *
+A cos(theta0) / pi * T(ground -> sun) and bounces cosine-weighted. The same vertex routines
+as the forward estimator are used (:mod:`cloudct.mc.events`), with the same
+medium-independent Russian roulette. The direct view of the sun's disc is not part of the
+images (a delta the pixels never contain).
 """
 
 from __future__ import annotations
@@ -23,8 +25,10 @@ import math
 from numba import njit, prange
 
 from cloudct.mc.accumulate import add_to
-from cloudct.mc.cameras import pixel_ray
-from cloudct.mc.events import lambertian_bounce, russian_roulette, scatter
+from cloudct.mc.cameras import inverse_r2_omega, pixel_ray
+from cloudct.mc.combined import backward_share
+from cloudct.mc.detector_sampling import aimed_weight, scatter_sun_aimed
+from cloudct.mc.events import lambertian_bounce, russian_roulette
 from cloudct.mc.random import DOMAIN_BACKWARD, stream_start, uniform
 from cloudct.mc.traversal import (
     BOTTOM,
@@ -46,20 +50,20 @@ def camera_ray_entry(grid, cams, periodic, view, row, col, state):
     (view, row, col) (orthographic: from that point along the view direction), taken to
     where it enters the medium (with periodic boundaries, folded into the box).
 
-    Returns ``(hit, px, py, pz, ux, uy, uz, ix, iy, iz, state)``; ``hit`` is False when
-    the ray misses the medium.
+    Returns ``(hit, t, px, py, pz, ux, uy, uz, ix, iy, iz, state)``, ``t`` the distance
+    from the ray's origin to the entry; ``hit`` is False when the ray misses the medium.
     """
     xi_u, state = uniform(state)
     xi_v, state = uniform(state)
     ox, oy, oz, ux, uy, uz = pixel_ray(cams, view, row, col, xi_u, xi_v)
     t = ray_box_entry(grid, ox, oy, oz, ux, uy, uz, periodic)
     if t < 0.0:
-        return False, ox, oy, oz, ux, uy, uz, 0, 0, 0, state
+        return False, t, ox, oy, oz, ux, uy, uz, 0, 0, 0, state
     px, py, pz = ox + t * ux, oy + t * uy, oz + t * uz
     if periodic:
         px, py = wrap_into_box(grid, px, py)
     ix, iy, iz = locate_point(grid, px, py, pz, ux, uy, uz)
-    return True, px, py, pz, ux, uy, uz, ix, iy, iz, state
+    return True, t, px, py, pz, ux, uy, uz, ix, iy, iz, state
 
 
 @njit(cache=True)
@@ -69,39 +73,85 @@ def trace_pixel_sample(
 ):
     """Radiance estimate of one backward sample of pixel (view, row, col).
 
+    With ``cams.mis_ratio`` > 0 each next-event estimate is weighted by its share of the
+    combined estimator, w_b of :mod:`cloudct.mc.combined`: the path's camera end D_f (the
+    first vertex's transmittance to the camera, 1 / (r^2 Omega_pixel) and the local
+    estimate's angular factor there) is kept from the first vertex on, and the product of
+    the aim factors f / q (:func:`~cloudct.mc.detector_sampling.aimed_weight`) with which a
+    forward photon would have drawn the directions of the vertices passed, and of its own
+    (f / q_s: directions aimed at the sun).
+
     Returns ``(radiance, vertices)``; ``ground_albedo < 0`` means no ground.
     """
     state = stream_start(seed, DOMAIN_BACKWARD, index)
-    hit, px, py, pz, ux, uy, uz, ix, iy, iz, state = camera_ray_entry(
+    hit, t_entry, px, py, pz, ux, uy, uz, ix, iy, iz, state = camera_ray_entry(
         grid, cams, periodic, view, row, col, state
     )
     if not hit:
         return 0.0, 0
     sx, sy, sz = -sun.direction[0], -sun.direction[1], -sun.direction[2]  # towards the sun
+    ratio = cams.mis_ratio
+    camera_end = 0.0  # W T(x_n -> camera) / (r^2 Omega_pixel) of the combined estimator
+    camera_turn = -1.0  # its angular factor c_n at x_n; < 0 at x_n itself: the NEE's own
+    aim_product = 1.0  # the forward photon's aim factors f / q at x_{n-1} .. (passed)
+    sun_aims = 1.0  # this path's own aim factors f / q_s (in its throughput)
     radiance = 0.0
     throughput = 1.0
     depth = 0
     while True:
         u, state = uniform(state)
-        status, px, py, pz, ix, iy, iz, _, _, _ = march(
+        status, px, py, pz, ix, iy, iz, _, walked, _ = march(
             grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
         )
         if status == LEFT:
             return radiance, depth
         if status == BOTTOM and ground_albedo <= 0.0:
             return radiance, depth
+        if ratio > 0.0 and depth == 0:
+            tau_camera = optical_depth_to_exit(
+                grid, px, py, pz, -ux, -uy, -uz, ix, iy, iz, periodic
+            )
+            camera_end = (sun.power * math.exp(-tau_camera)
+                          * inverse_r2_omega(cams, view, ux, uy, uz, t_entry + walked))
+            if status == BOTTOM:  # the local estimate's Lambertian factor, towards the camera
+                camera_turn = ground_albedo * -uz * INV_PI
         tau_sun = optical_depth_to_exit(grid, px, py, pz, sx, sy, sz, ix, iy, iz, periodic)
+        vx, vy, vz = ux, uy, uz
         if status == BOTTOM:
-            radiance += throughput * ground_albedo * sz * INV_PI * math.exp(-tau_sun)
+            angular = ground_albedo * sz * INV_PI
+            contribution = throughput * ground_albedo * sz * INV_PI * math.exp(-tau_sun)
             throughput *= ground_albedo
             ux, uy, uz, state = lambertian_bounce(state)
         else:
             throughput *= effective_albedo(grid, ix, iy, iz)
             # sunlight travels along -s and leaves towards the camera along -u:
             # the scattering cosine is (-s).(-u) = s.u
-            phase = mixture_phase_function(grid, bank, ix, iy, iz, sx * ux + sy * uy + sz * uz)
-            radiance += throughput * phase * math.exp(-tau_sun)
-            ux, uy, uz, state = scatter(grid, bank, ix, iy, iz, ux, uy, uz, state)
+            angular = mixture_phase_function(grid, bank, ix, iy, iz, sx * vx + sy * vy + sz * vz)
+            contribution = throughput * angular * math.exp(-tau_sun)
+            ux, uy, uz, aimed, state = scatter_sun_aimed(
+                grid, bank, sun, ix, iy, iz, ux, uy, uz, state
+            )
+            throughput *= aimed
+        if ratio > 0.0:
+            turn = angular if camera_turn < 0.0 else camera_turn
+            aims = aim_product
+            if depth > 0 and status != BOTTOM:  # the forward photon's draw at this x_1
+                aims *= aimed_weight(grid, bank, cams, ix, iy, iz, px, py, pz,
+                                     -sx, -sy, -sz, -vx, -vy, -vz)
+            contribution *= backward_share(
+                math.exp(-tau_sun) * angular * sun_aims, camera_end * turn * aims, ratio
+            )
+            if status != BOTTOM:
+                sun_aims *= aimed
+                # the photon arrives here along -u' and leaves towards the camera side along -u
+                if depth == 0:
+                    camera_turn = mixture_phase_function(
+                        grid, bank, ix, iy, iz, vx * ux + vy * uy + vz * uz
+                    )
+                else:  # the forward photon's draw here, for the paths that go on
+                    aim_product *= aimed_weight(grid, bank, cams, ix, iy, iz, px, py, pz,
+                                                -ux, -uy, -uz, -vx, -vy, -vz)
+        radiance += contribution
         depth += 1
         factor, state = russian_roulette(depth, rr_depth, rr_survival, state)
         if factor == 0.0:

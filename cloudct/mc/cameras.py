@@ -134,6 +134,9 @@ class CameraArrays(NamedTuple):
     #: share of forward scattering events that aim their new direction at a camera
     #: (:mod:`cloudct.mc.detector_sampling`); 0: plain phase-function sampling
     aim_fraction: float = 0.0
+    #: backward samples per pixel over forward photons of the combined estimator
+    #: (:mod:`cloudct.mc.combined`); 0: each estimator alone, unweighted
+    mis_ratio: float = 0.0
 
 
 def camera_arrays(cameras: list[Camera], aim_fraction: float = 0.0) -> CameraArrays:
@@ -208,6 +211,17 @@ def project(cams, view, px, py, pz):
     # r^2 * Omega = r^2 * a * cos^3(alpha) = a * depth^3 / r
     inverse_r2_omega = r / (cams.pixel_area[view] * depth * depth * depth)
     return row, col, -dx / r, -dy / r, -dz / r, inverse_r2_omega
+
+
+@njit(cache=True)
+def inverse_r2_omega(cams, view, ux, uy, uz, r):
+    """1 / (r^2 Omega_pixel) of :func:`project` for the point at distance ``r`` from the
+    pinhole along the unit vector (ux, uy, uz) (orthographic: 1 / pixel area, whatever
+    ``r``): the density per unit volume, over sigma T, of the backward ray's first vertex."""
+    if cams.projection[view] != PINHOLE:
+        return 1.0 / cams.pixel_area[view]
+    cos_alpha = ux * cams.forward[view, 0] + uy * cams.forward[view, 1] + uz * cams.forward[view, 2]
+    return 1.0 / (cams.pixel_area[view] * r * r * cos_alpha * cos_alpha * cos_alpha)
 
 
 @njit(cache=True)

@@ -1,4 +1,5 @@
-"""Detector directional importance sampling: scattering directions aimed at the cameras.
+"""Directional importance sampling: forward scattering directions aimed at the cameras,
+backward ones at the sun.
 
 Why: a local estimate is proportional to the phase function at the angle between the
 photon's incoming direction and the direction to the camera. A Mie phase function has a
@@ -32,6 +33,18 @@ stored vertex (:mod:`cloudct.recycling.record_kernels`).
 
 With ``aim_fraction = 0`` no random number is drawn beyond the plain sampler's, so the
 paths, and the images for a seed, are exactly those of the plain forward estimator.
+
+The backward estimator's mirror image (:mod:`cloudct.mc.backward`): its next-event estimate
+at a vertex carries f(s . u), s the unit vector towards the sun and u the direction the
+path arrived along, a diffraction peak where the path happened to travel towards the sun.
+A backward scattering event draws its new direction w from
+
+    q_s(w) = (1 - a_s) f(v . w) + a_s f(s . w),
+
+one lobe about the sun (``SunArrays.aim_fraction`` a_s), with the weight f(v . w) / q_s(w)
+<= 1 / (1 - a_s); the next vertex's next-event estimate is then bounded by about
+f(v . w) / a_s. The combined estimator (:mod:`cloudct.mc.combined`) evaluates both
+weights, f / q and f / q_s, along the paths of either estimator.
 """
 
 from __future__ import annotations
@@ -45,6 +58,15 @@ from cloudct.physics.mixing import mixture_phase_function
 
 #: Default share of forward scattering events that aim their new direction at a camera.
 DEFAULT_AIM_FRACTION = 0.1
+
+
+@njit(cache=True, inline="always")
+def aim_factor(f, lobes, a):
+    """f / q with q = (1 - a) f + a ``lobes`` (the aimed lobes' mean density at the drawn
+    direction); 0 where q is 0 (a direction outside the support of every component: never
+    drawn)."""
+    q = (1.0 - a) * f + a * lobes
+    return f / q if q > 0.0 else 0.0
 
 
 @njit(cache=True)
@@ -65,10 +87,7 @@ def aimed_weight(grid, bank, cams, ix, iy, iz, px, py, pz, vx, vy, vz, wx, wy, w
             seen += 1
     if seen == 0:
         return 1.0
-    q = (1.0 - a) * f + a * aimed / seen
-    if q <= 0.0:  # w outside the support of every component: not drawn (density 0)
-        return 0.0
-    return f / q
+    return aim_factor(f, aimed / seen, a)
 
 
 @njit(cache=True)
@@ -96,4 +115,31 @@ def scatter_aimed(grid, bank, cams, ix, iy, iz, px, py, pz, ux, uy, uz, state):
                     pick -= 1
     wx, wy, wz, state = scatter(grid, bank, ix, iy, iz, cx, cy, cz, state)
     factor = aimed_weight(grid, bank, cams, ix, iy, iz, px, py, pz, ux, uy, uz, wx, wy, wz)
+    return wx, wy, wz, factor, state
+
+
+@njit(cache=True)
+def sun_aimed_weight(grid, bank, sun, ix, iy, iz, vx, vy, vz, wx, wy, wz):
+    """f(v . w) / q_s(w) of a backward direction w leaving a scattering event in voxel (ix,
+    iy, iz) with incoming direction v (q_s: the module documentation's lobe about the sun);
+    1 when ``sun.aim_fraction`` is 0."""
+    a = sun.aim_fraction
+    if a <= 0.0:
+        return 1.0
+    f = mixture_phase_function(grid, bank, ix, iy, iz, vx * wx + vy * wy + vz * wz)
+    towards_sun = -(sun.direction[0] * wx + sun.direction[1] * wy + sun.direction[2] * wz)
+    return aim_factor(f, mixture_phase_function(grid, bank, ix, iy, iz, towards_sun), a)
+
+
+@njit(cache=True)
+def scatter_sun_aimed(grid, bank, sun, ix, iy, iz, ux, uy, uz, state):
+    """New direction after a backward scattering event, drawn from q_s (module
+    documentation), and the weight factor f / q_s: ``(wx, wy, wz, factor, state)``."""
+    cx, cy, cz = ux, uy, uz  # the lobe's axis: the incoming direction, or the sun's
+    if sun.aim_fraction > 0.0:  # (no draw at 0: the plain sampler's random stream)
+        u, state = uniform(state)
+        if u < sun.aim_fraction:
+            cx, cy, cz = -sun.direction[0], -sun.direction[1], -sun.direction[2]
+    wx, wy, wz, state = scatter(grid, bank, ix, iy, iz, cx, cy, cz, state)
+    factor = sun_aimed_weight(grid, bank, sun, ix, iy, iz, ux, uy, uz, wx, wy, wz)
     return wx, wy, wz, factor, state

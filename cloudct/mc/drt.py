@@ -464,7 +464,7 @@ def primal_pass(
     """
     state = stream_start(seed, domain, 2 * index)
     side = stream_start(seed, domain, 2 * index + 1)
-    hit, px, py, pz, ux, uy, uz, ix, iy, iz, state = camera_ray_entry(
+    hit, _, px, py, pz, ux, uy, uz, ix, iy, iz, state = camera_ray_entry(
         grid, cams, periodic, view, row, col, state
     )
     total = 0.0

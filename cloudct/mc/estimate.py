@@ -81,11 +81,11 @@ def kernel_inputs(
     entry_cloud_share: float = 0.0,
 ) -> KernelInputs:
     """Validate a medium and a scene and gather them into kernel arrays (``aim_fraction``:
-    the forward estimator's detector directional importance sampling, see
-    :mod:`cloudct.mc.detector_sampling`; 0 switches it off, None chooses it by the optics:
-    :func:`default_aim_fraction`). ``entry_cloud_share``: the forward photons' share m in
-    [0, 1) entering where the clouds are (:func:`cloudct.mc.sun.sun_arrays`; 0: uniform
-    entry)."""
+    the share of scattering directions aimed at the cameras by forward paths and at the sun
+    by backward ones, see :mod:`cloudct.mc.detector_sampling`; 0 switches it off, None
+    chooses it by the optics: :func:`default_aim_fraction`). ``entry_cloud_share``: the
+    forward photons' share m in [0, 1) entering where the clouds are
+    (:func:`cloudct.mc.sun.sun_arrays`; 0: uniform entry)."""
     grid, bank, edges, cloud_scale = medium_arrays(medium)
     check_scene(scene, edges)
     if aim_fraction is None:
@@ -95,7 +95,8 @@ def kernel_inputs(
         bank=bank,
         cams=camera_arrays(scene.cameras, aim_fraction),
         copies=periodic_copy_ranges(scene, edges),
-        sun=sun_arrays(scene.sun, edges, scene.periodic, grid, entry_cloud_share),
+        sun=sun_arrays(scene.sun, edges, scene.periodic, grid, entry_cloud_share)._replace(
+            aim_fraction=float(aim_fraction)),
         periodic=scene.periodic,
         ground=-1.0 if scene.ground_albedo is None else float(scene.ground_albedo),
         edges=edges,

@@ -25,7 +25,8 @@ from numba import njit, prange
 
 from cloudct.mc.accumulate import add_along, add_to
 from cloudct.mc.cameras import project
-from cloudct.mc.detector_sampling import scatter_aimed
+from cloudct.mc.combined import forward_share
+from cloudct.mc.detector_sampling import aim_factor, scatter_aimed, sun_aimed_weight
 from cloudct.mc.events import lambertian_bounce, russian_roulette
 from cloudct.mc.random import DOMAIN_FORWARD, stream_start, uniform
 from cloudct.mc.sun import sample_entry_point
@@ -122,7 +123,8 @@ def connection_angular(grid, bank, ix, iy, iz, mu, ground_albedo):
 @njit(cache=True)
 def local_estimate(
     grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz, weight, ground_albedo,
-    mode, image, residual, gradient, trail=None,
+    mode, image, residual, gradient, trail=None, sun_end=0.0, sun_turn=-1.0, sun_aim=0.0,
+    sun_lobe=-1.0,
 ):
     """Local estimates of one event at (px, py, pz) to every camera (Eqs. 36-39).
 
@@ -139,6 +141,16 @@ def local_estimate(
     (``trail``), GRADIENT deposits the connection segment from the crossings recorded while
     computing its transmittance instead of walking it a second time (same values, same
     order; a ray with more crossings than the trail holds is walked again).
+
+    With ``cams.mis_ratio`` > 0 each estimate is weighted by its share w_f of the combined
+    estimator (:mod:`cloudct.mc.combined`): ``sun_end`` is the path's T(x_1 -> sun) / W
+    times the backward aim factors f / q_s of its vertices x_2 .. x_{n-1} over its own aim
+    factors, ``sun_turn`` the next-event estimate's angular factor c_1 at x_1 (< 0 when this
+    event is x_1 scattering: the estimate's own angular factor); a backward path draws its
+    direction at this event towards x_{n-1} with the weight f / q_s whose aimed lobe is
+    ``sun_lobe`` (f at the incoming direction's angle with the sun's; < 0: no such draw, at
+    x_1 or the ground) and aim fraction ``sun_aim``
+    (:mod:`cloudct.mc.detector_sampling`).
     """
     lx = grid.x_edges[-1] - grid.x_edges[0]
     ly = grid.y_edges[-1] - grid.y_edges[0]
@@ -177,6 +189,13 @@ def local_estimate(
                         trail,
                     )[7]
                 value = weight * angular * math.exp(-tau) * inv_r2_omega
+                if cams.mis_ratio > 0.0:
+                    sun_side = sun_end * (angular if sun_turn < 0.0 else sun_turn)
+                    if sun_lobe >= 0.0:
+                        sun_side *= aim_factor(angular, sun_lobe, sun_aim)
+                    value *= forward_share(
+                        sun_side, math.exp(-tau) * inv_r2_omega * angular, cams.mis_ratio
+                    )
                 if mode == RENDER:
                     add_to(image, view, row, col, value)
                     continue
@@ -232,6 +251,11 @@ def trace_photon(
     (:data:`FLUX_TOP` ... :data:`FLUX_MEDIUM`): the domain-mean fluxes of
     :mod:`cloudct.mc.sensors`. The path itself does not change.
 
+    With ``cams.mis_ratio`` > 0 (the combined estimator, :mod:`cloudct.mc.combined`) the
+    path keeps its sun end from its first vertex on (the transmittance to the sun there and
+    the next-event estimate's angular factor) and the product of its aim factors, which
+    weight its local estimates.
+
     Returns ``(vertices, S)``; ``(records, 0)`` in COUNT and RECORD modes.
     """
     state = stream_start(seed, DOMAIN_FORWARD, index)
@@ -242,6 +266,10 @@ def trace_photon(
     ux, uy, uz = sun.direction[0], sun.direction[1], sun.direction[2]
     ix, iy, iz = locate_point(grid, px, py, pz, ux, uy, uz)
     depth = 0
+    sun_end = 0.0  # T(x_1 -> sun) / W of the combined estimator
+    sun_turn = -1.0  # its angular factor c_1 at x_1; < 0 at x_1 itself: the estimate's own
+    aim_product = 1.0  # the aim factors f / q of the directions drawn so far
+    back_aims = 1.0  # a backward path's aim factors f / q_s at the vertices x_2 .. passed
     total = 0.0
     remaining = path_sum  # W_k: the residual-weighted estimates of events not yet passed
     records = 0  # COUNT / RECORD modes
@@ -286,11 +314,15 @@ def trace_photon(
                     add_to(fluxes, 0, 0, FLUX_GROUND, weight * (1.0 - ground_albedo))
             if ground_albedo <= 0.0:
                 return (depth if mode < COUNT else records), total
+            if cams.mis_ratio > 0.0 and depth == 0:
+                sun_end = sun_transmittance(grid, sun, periodic, px, py, pz, ix, iy, iz)
+                sun_turn = ground_albedo * -sun.direction[2] * INV_PI
             s_event = 0.0
             if mode < COUNT:
                 s_event = local_estimate(
                     grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz,
                     weight, ground_albedo, mode, image, residual, gradient, trail,
+                    sun_end * back_aims / aim_product, sun_turn,
                 )
             weight *= ground_albedo
             ux, uy, uz, state = lambertian_bounce(state)
@@ -301,17 +333,37 @@ def trace_photon(
             if albedo == 0.0:
                 return (depth if mode < COUNT else records), total
             weight *= albedo
+            sun_lobe = -1.0
+            if cams.mis_ratio > 0.0:
+                if depth == 0:
+                    sun_end = sun_transmittance(grid, sun, periodic, px, py, pz, ix, iy, iz)
+                elif sun.aim_fraction > 0.0:  # f at the angle of -u with the sun's direction
+                    sun_lobe = mixture_phase_function(
+                        grid, bank, ix, iy, iz,
+                        sun.direction[0] * ux + sun.direction[1] * uy + sun.direction[2] * uz,
+                    )
             s_event = 0.0
             if mode < COUNT:
                 s_event = local_estimate(
                     grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz,
                     weight, -1.0, mode, image, residual, gradient, trail,
+                    sun_end * back_aims / aim_product, sun_turn, sun.aim_fraction, sun_lobe,
                 )
             vx, vy, vz = ux, uy, uz
             ux, uy, uz, aimed, state = scatter_aimed(
                 grid, bank, cams, ix, iy, iz, px, py, pz, ux, uy, uz, state
             )
             weight *= aimed
+            aim_product *= aimed
+            if cams.mis_ratio > 0.0:
+                if depth == 0:  # the turn from the sun's rays at x_1
+                    sun_turn = mixture_phase_function(
+                        grid, bank, ix, iy, iz, vx * ux + vy * uy + vz * uz
+                    )
+                else:  # a backward path's draw here, arriving along -u, towards x_{i-1}
+                    back_aims *= sun_aimed_weight(
+                        grid, bank, sun, ix, iy, iz, -ux, -uy, -uz, -vx, -vy, -vz
+                    )
             if mode == GRADIENT:
                 # the sampled vertex term belongs to the scores of all later events
                 mu = vx * ux + vy * uy + vz * uz
@@ -328,6 +380,19 @@ def trace_photon(
         if factor == 0.0:
             return (depth if mode < COUNT else records), total
         weight *= factor
+
+
+@njit(cache=True)
+def sun_transmittance(grid, sun, periodic, px, py, pz, ix, iy, iz):
+    """T(x -> sun) / W at a path's first vertex: the transmittance along the sun's rays out
+    of the medium over the uniform entry's photon weight (the sun end D_b / c_1 of
+    :mod:`cloudct.mc.combined`, computed as the backward estimator's next-event estimate
+    does)."""
+    tau = optical_depth_to_exit(
+        grid, px, py, pz, -sun.direction[0], -sun.direction[1], -sun.direction[2], ix, iy, iz,
+        periodic,
+    )
+    return math.exp(-tau) / sun.power
 
 
 @njit(parallel=True, cache=True)

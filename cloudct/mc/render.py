@@ -1,12 +1,14 @@
 """Render multi-view images of a medium: the Python API and the ``cloudct render`` command.
 
-:func:`render` runs the forward (sun -> cameras, local estimation) or the backward
-(cameras -> sun, next-event estimation) estimator and returns an ``xarray.Dataset`` of
+:func:`render` runs the forward (sun -> cameras, local estimation), the backward
+(cameras -> sun, next-event estimation) or the combined estimator (both, each path weighted
+by multiple importance sampling: :mod:`cloudct.mc.combined`) and returns an ``xarray.Dataset`` of
 ``radiance`` and ``radiance_std_error`` over (view, row, col), with the cameras as
 variables over ``view`` and the sun, boundary and run statistics as attributes.
 
 Photons (forward) or pixel samples (backward) are split into ``batches`` independent
-batches; the image is the mean over all of them and its standard error is the standard
+batches (the combined estimator: both, batch b of its images the sum of the two estimators'
+batch b); the image is the mean over all of them and its standard error is the standard
 deviation of the batch means over sqrt(batches). The batches, and so the images, do not
 depend on the number of threads.
 """
@@ -19,16 +21,28 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from cloudct.mc.estimate import Sampling, batch_means, kernel_inputs, mean_and_std_error
+from cloudct.mc.estimate import (
+    Sampling,
+    batch_means,
+    kernel_inputs,
+    mean_and_std_error,
+    medium_arrays,
+)
 from cloudct.mc.executor import BatchExecutor
 from cloudct.mc.forward import RENDER
 from cloudct.mc.scene import Scene
 from cloudct.mc.sun import check_cloud_share
 from cloudct.netcdf import save_netcdf
 from cloudct.optics import DEFAULT_OPTICS, PHASE_TRUNCATION, optics_name, to_optical
+from cloudct.physics.phase import TABULATED
 
 RADIANCE_UNITS = "1"  # in units of the solar irradiance perpendicular to the rays, per sr
-METHODS = ("forward", "backward")
+METHODS = ("forward", "backward", "combined")
+#: The combined estimator's default backward paths per forward photon: of 1, 4 and 16 with
+#: Mie optics, the most efficient on the single cloud and 0.92 of the best (1) on the two
+#: cumuli, with the worst view's brightest pixel under 3x its 99th percentile on both
+#: (docs/benchmarks.md, "Mie optics").
+BACKWARD_PATHS_PER_PHOTON = 4
 
 
 def render(
@@ -46,6 +60,7 @@ def render(
     backend: str = "cpu",
     executor: BatchExecutor | None = None,
     entry_cloud_share: float = 0.0,
+    pixel_samples: int | None = None,
 ) -> xr.Dataset:
     """Images of ``medium`` seen by the cameras of ``scene``.
 
@@ -56,10 +71,14 @@ def render(
     scene
         Cameras, sun, boundary conditions and ground.
     photons
-        Forward: the number of photons. Backward: the number of samples per pixel.
-        Rounded up to a multiple of ``batches``.
+        Forward and combined: the number of photons. Backward: the number of samples per
+        pixel. Rounded up to a multiple of ``batches``.
     method
-        ``"forward"`` (local estimation, one path serves every view) or ``"backward"``.
+        ``"forward"`` (local estimation, one path serves every view), ``"backward"``, or
+        ``"combined"``: both, each path's estimate weighted by its share under multiple
+        importance sampling (:mod:`cloudct.mc.combined`), so that neither estimator's
+        fireflies survive where the other samples the phase function's peak: for Mie
+        optics.
     seed
         Seed of the counter-based random streams: same seed, same images.
     batches
@@ -68,13 +87,12 @@ def render(
         Russian roulette: from vertex ``rr_depth`` on a path survives each vertex with
         probability ``rr_survival`` (medium-independent, unbiased).
     aim_fraction
-        Forward: the share of scattering events whose new direction is drawn around the
-        direction to a camera that sees them, with the weight that keeps the images
-        unbiased (detector directional importance sampling,
+        The share of scattering events whose new direction is drawn around the direction
+        to a camera that sees them (forward paths) or to the sun (backward paths), with
+        the weight that keeps the images unbiased (directional importance sampling,
         :mod:`cloudct.mc.detector_sampling`). It tames the fireflies of peaked (Mie) phase
         functions; 0 switches it off; None (default): 0.1 with tabulated (Mie) phase
-        functions, else 0 (:func:`default_aim_fraction`). The backward estimator ignores
-        it.
+        functions, else 0 (:func:`default_aim_fraction`).
     progress
         Show a progress bar (None: only on a terminal).
     backend
@@ -92,6 +110,12 @@ def render(
         earlier versions. The backward estimator ignores it. The share applied is the
         images' attribute ``entry_cloud_share`` (0 where no ray of the sun meets
         extinction: uniform entry).
+    pixel_samples
+        Combined: the backward samples per pixel, rounded up to a multiple of
+        ``batches``; None: :func:`default_pixel_samples`. Other methods refuse it. The
+        combined images' attributes add ``pixel_samples``, ``mis_ratio`` (backward samples
+        per pixel over photons) and ``backward_share`` (the share of the images' light
+        that the backward paths carry).
 
     Examples
     --------
@@ -118,7 +142,7 @@ def render(
         medium, scene, photons=photons, method=method, seed=seed, batches=batches,
         rr_depth=rr_depth, rr_survival=rr_survival, aim_fraction=aim_fraction,
         progress=progress, backend=backend, executor=executor,
-        entry_cloud_share=entry_cloud_share,
+        entry_cloud_share=entry_cloud_share, pixel_samples=pixel_samples,
     )
     radiance, std_error = mean_and_std_error(images)
     return images_dataset(radiance, std_error, scene, optics=optics_name(medium), **info)
@@ -139,27 +163,69 @@ def render_batches(
     backend: str = "cpu",
     executor: BatchExecutor | None = None,
     entry_cloud_share: float = 0.0,
+    pixel_samples: int | None = None,
 ) -> tuple[np.ndarray, dict]:
     """The images of each independent batch, float64[batches, view, row, col], and the run's
     attributes; :func:`render` averages them. Arguments as for :func:`render`."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if pixel_samples is not None and method != "combined":
+        raise ValueError(f"pixel_samples is the combined estimator's; method {method!r} "
+                         f"takes its samples from photons")
     sampling = Sampling(batches, seed, rr_depth, rr_survival, backend)
     per_batch = sampling.per_batch(photons)
     check_cloud_share(entry_cloud_share)
-    forward = method == "forward"
-    k = kernel_inputs(medium, scene, aim_fraction if forward else 0.0,
+    forward = method != "backward"
+    k = kernel_inputs(medium, scene, aim_fraction,
                       entry_cloud_share=entry_cloud_share if forward else 0.0)
-    kernel, args = ("forward", (RENDER, None)) if forward else ("backward", ())
-    images, run = batch_means(kernel, k, args, per_batch=per_batch, sampling=sampling,
-                              progress=progress, executor=executor, desc=method)
+    run_of = dict(progress=progress, executor=executor, sampling=sampling)
+    extra = {}
+    if method == "combined":
+        if pixel_samples is None:
+            pixel_samples = default_pixel_samples(per_batch * batches, scene)
+        per_pixel = sampling.per_batch(pixel_samples)
+        k = k._replace(cams=k.cams._replace(mis_ratio=per_pixel / per_batch))
+        images, run = batch_means("forward", k, (RENDER, None), per_batch=per_batch,
+                                  desc="combined, forward", **run_of)
+        backward, run_backward = batch_means("backward", k, (), per_batch=per_pixel,
+                                             desc="combined, backward", **run_of)
+        total = float(images.sum() + backward.sum())
+        images += backward
+        run = {**run_backward, **run, "events": run["events"] + run_backward["events"],
+               "wall_time": run["wall_time"] + run_backward["wall_time"]}
+        extra = dict(pixel_samples=per_pixel * batches, mis_ratio=k.cams.mis_ratio,
+                     backward_share=float(backward.sum()) / total if total > 0.0 else 0.0)
+    elif forward:
+        images, run = batch_means("forward", k, (RENDER, None), per_batch=per_batch,
+                                  desc=method, **run_of)
+    else:
+        images, run = batch_means("backward", k, (), per_batch=per_batch, desc=method,
+                                  **run_of)
     info = dict(
-        method=method, photons=per_batch * batches, seed=seed, batches=batches,
+        method=method, photons=per_batch * batches, **extra, seed=seed, batches=batches,
         rr_depth=rr_depth, rr_survival=rr_survival, aim_fraction=k.cams.aim_fraction,
         entry_cloud_share=k.sun.cloud_share,
         phase_truncation=float(medium.attrs.get(PHASE_TRUNCATION, 0.0)), **run,
     )
     return images, info
+
+
+def default_method(medium: xr.Dataset) -> str:
+    """The estimator for images that are to be as good as they can (synthetic measurements):
+    ``"combined"`` for a medium with a tabulated (Mie) phase function, whose diffraction peak
+    gives the forward images fireflies that the combined estimator removes (measured:
+    docs/benchmarks.md, "Mie optics"), else ``"forward"``."""
+    bank = medium_arrays(medium)[1]
+    return "combined" if np.any(bank.kind == TABULATED) else "forward"
+
+
+def default_pixel_samples(photons: int, scene: Scene) -> int:
+    """The combined estimator's backward samples per pixel when none are given:
+    :data:`BACKWARD_PATHS_PER_PHOTON` backward paths per forward photon, spread over the
+    scene's pixels (at least 1 per pixel)."""
+    cam = scene.cameras[0]
+    pixels = len(scene.cameras) * cam.nrows * cam.ncols
+    return max(1, round(BACKWARD_PATHS_PER_PHOTON * photons / pixels))
 
 
 def images_dataset(

@@ -65,8 +65,9 @@ class Sun:
 
 
 class SunArrays(NamedTuple):
-    """Kernel-side sun: travel direction, face-choice CDF, the weight of each photon and,
-    for entry where the clouds are, the entry cells' table (empty: uniform entry)."""
+    """Kernel-side sun: travel direction, face-choice CDF, the weight of each photon, for
+    entry where the clouds are the entry cells' table (empty: uniform entry), and the share
+    of backward paths' directions aimed at the sun."""
 
     direction: np.ndarray  # float64[3], direction of travel of sunlight
     face_cdf: np.ndarray  # float64[5], cumulative projected areas / total
@@ -75,6 +76,9 @@ class SunArrays(NamedTuple):
     cell_cdf: np.ndarray  # float64[ncells], cumulative p_c over the cells (empty: uniform)
     cell_weight: np.ndarray  # float64[ncells], a photon's weight P a_c / p_c per cell
     cell_start: np.ndarray  # int64[6], first cell of each face (FACE_TOP ...), then ncells
+    #: share of backward scattering directions drawn about the direction to the sun
+    #: (:mod:`cloudct.mc.detector_sampling`); 0: plain phase-function sampling
+    aim_fraction: float = 0.0
 
 
 def check_cloud_share(cloud_share: float) -> float:

@@ -1,0 +1,60 @@
+"""The combined estimator of an image: forward and backward paths joined by multiple
+importance sampling.
+
+A path sun -> x_1 -> ... -> x_n -> pixel is sampled by two estimators. The forward one
+(:mod:`cloudct.mc.forward`) draws x_1 .. x_n from the sun and connects x_n to the camera by a
+local estimate, which carries f(x_n), the phase function at the angle the path turns at
+x_n towards the camera; the backward one (:mod:`cloudct.mc.backward`) draws x_n .. x_1 from
+the pixel and connects x_1 to the sun by a next-event estimate, which carries f(x_1), the
+angle it turns at x_1 coming from the sun. Each samples by the phase function the end the
+other only evaluates: where a Mie phase function's diffraction peak (hundreds per sr) falls
+on the camera's end, the local estimate is a firefly and the backward path drew that
+direction with the peak's own density, and the other way round at the sun's end.
+
+With N_f photons and N_b samples per pixel, the balance heuristic (Veach & Guibas 1995)
+gives the path's forward estimate the weight
+
+    w_f = N_f p_f / (N_f p_f + N_b p_b) = D_b / (D_b + (N_b / N_f) D_f),   w_b = 1 - w_f,
+
+where p_f, p_b are the two estimators' densities of the path. Their ratio p_b / p_f is the
+forward estimate over the backward estimate of the same path; the albedos and the phase
+functions at x_2 .. x_{n-1} (drawn by both, Eq. 33) cancel, which leaves the ends:
+
+    D_f = W T(x_n -> camera) / (r^2 Omega_pixel) c_n,     D_b = T(x_1 -> sun) c_1,
+
+W the total projected area of the sunlit faces (a uniformly entering photon's weight,
+:mod:`cloudct.mc.sun`), r^2 Omega_pixel the local estimate's (Eqs. 36-39), c_n the local
+estimate's angular factor at x_n (f(x_n) towards the camera, or A cos(theta_camera) / pi at
+the ground) and c_1 the next-event estimate's at x_1 (f(x_1) from the sun, A cos(theta0) /
+pi at the ground). For a path of one vertex both phase factors are f at the angle between
+the sun's rays and the line of sight.
+
+Both estimators compute D_f and D_b of each path they trace from the path alone, so w_f +
+w_b = 1 for every path and the sum of the two weighted images is unbiased whatever the
+weights' optimality. Where the forward photons aim at the cameras
+(:mod:`cloudct.mc.detector_sampling`), enter where the clouds are, or meet Russian roulette,
+p_f differs from what D_f assumes: the weights stay a partition of unity (unbiased), no
+longer exactly the balance heuristic.
+
+The ratio N_b / N_f reaches the kernels as ``CameraArrays.mis_ratio``; 0 (the default)
+leaves each estimator alone and unweighted.
+"""
+
+from __future__ import annotations
+
+from numba import njit
+
+
+@njit(cache=True, inline="always")
+def forward_share(sun_end, camera_end, ratio):
+    """The forward estimate's weight w_f = D_b / (D_b + ratio D_f) (``sun_end`` D_b,
+    ``camera_end`` D_f, ``ratio`` N_b / N_f; 0 where both ends are 0: no light there)."""
+    total = sun_end + ratio * camera_end
+    return sun_end / total if total > 0.0 else 0.0
+
+
+@njit(cache=True, inline="always")
+def backward_share(sun_end, camera_end, ratio):
+    """The backward estimate's weight w_b = ratio D_f / (D_b + ratio D_f), 1 - w_f."""
+    total = sun_end + ratio * camera_end
+    return ratio * camera_end / total if total > 0.0 else 0.0
