@@ -14,7 +14,7 @@ by multiple importance sampling, and the backward paths' directions aimed at the
   forward render) and bound its fireflies: without aiming, its brightest pixel is several
   times the view's 99th percentile at the piece's own droplets (r_eff 10-15 micron).
 - The combined images' brightest pixel stays within 1.5 times its view's 99th percentile
-  at several seeds.
+  at several seeds, where the plain forward estimator's does not.
 """
 
 from __future__ import annotations
@@ -149,11 +149,14 @@ def test_sun_aimed_backward_bounds_its_fireflies(mie_piece, seed):
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_combined_images_have_no_fireflies_with_mie_optics(mie_piece, seed):
-    images = render(mie_piece, scene_of_piece(mie_piece), photons=400_000, method="combined",
-                    pixel_samples=2048, seed=seed, progress=False)
-    ratios = firefly_ratios(images)
-    print(f"seed {seed}: {np.round(ratios, 2)}")
-    assert np.all(ratios < 1.5)
+    scene = scene_of_piece(mie_piece)
+    combined = firefly_ratios(render(mie_piece, scene, photons=400_000, method="combined",
+                                     pixel_samples=2048, seed=seed, progress=False))
+    plain = firefly_ratios(render(mie_piece, scene, photons=400_000, seed=seed,
+                                  aim_fraction=0.0, progress=False))
+    print(f"seed {seed}: combined {np.round(combined, 2)}, plain forward {np.round(plain, 2)}")
+    assert np.all(combined < 1.5)
+    assert np.any(plain > 1.5)  # the test can fail: the plain forward estimator's does
 
 
 def test_pixel_samples_belong_to_the_combined_estimator(small_droplet_piece,

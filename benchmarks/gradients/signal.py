@@ -119,6 +119,9 @@ def main() -> None:
                         help="ESTIMATOR:PATHS[:residual] (module docstring)")
     parser.add_argument("--residual-photons", type=int, default=1_000_000)
     parser.add_argument("--measurement-photons", type=int, default=20_000_000)
+    parser.add_argument("--measurement-method", choices=("forward", "combined"), default=None,
+                        help="the measurements' render (default: combined with Mie optics, "
+                        "else forward; runs before 2026-11-27 14:00 rendered forward)")
     parser.add_argument("--work", default=str(WORK))
     parser.add_argument("--start", default=None,
                         help="evaluate at this medium netCDF (its cloud_mask, where present, "
@@ -132,7 +135,8 @@ def main() -> None:
 
     truth = single_cloud_medium(args.optics)
     name = "single_cloud" if args.optics == "hg" else f"single_cloud_{args.optics}"
-    measurements = measurements_for(truth, args.measurement_photons, Path(args.work), name)
+    measurements = measurements_for(truth, args.measurement_photons, Path(args.work), name,
+                                    args.measurement_method)
     if args.start is None:  # the seed paper's constant start, that of the first runs
         initial = initial_medium(carve(measurements, truth, profile="constant"), truth)
     else:

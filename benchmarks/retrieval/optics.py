@@ -84,6 +84,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--minutes", type=float, default=15.0, help="per retrieval")
     parser.add_argument("--measurement-photons", type=int, default=10_000_000)
+    parser.add_argument("--measurement-method", choices=("forward", "combined"), default=None,
+                        help="the measurements' render (`cloudct synth --method`; default: "
+                        "combined with Mie optics, else forward; runs before 2026-11-27 14:00 "
+                        "rendered forward)")
     parser.add_argument("--runs", nargs="+", choices=list(RUNS), default=list(RUNS)[:4])
     parser.add_argument("--backend", choices=("cpu", "cuda", "auto"), default="cpu",
                         help="of every command (default cpu: the 2-core table)")
@@ -101,8 +105,10 @@ def main() -> None:
         if not _file(out, optics, "measurements.nc").exists():
             save_medium(single_cloud_medium(optics), str(_file(out, optics, "truth.nc")),
                         overwrite=True)
+            method = [] if args.measurement_method is None else [
+                "--method", args.measurement_method]
             run_command(["synth", "--optics", optics, "--photons",
-                         str(args.measurement_photons), *backend,
+                         str(args.measurement_photons), *method, *backend,
                          "-o", str(_file(out, optics, "measurements.nc"))], log)
     for measured, optics in sorted({RUNS[name][:2] for name in args.runs}
                                    if not args.collect else ()):

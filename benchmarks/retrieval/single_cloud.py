@@ -36,7 +36,7 @@ import xarray as xr
 
 from benchmarks.common import RESULTS, WORK, markdown_table, run_header, write_result
 from cloudct.cli.retrieve import add_run_options, config_from_options
-from cloudct.mc.render import render, single_cloud_medium
+from cloudct.mc.render import default_method, render, single_cloud_medium
 from cloudct.mc.scene import Scene
 from cloudct.measurements import (
     load_measurements,
@@ -50,25 +50,31 @@ from cloudct.retrieval.loop import Retrieval, coarse_measurements
 from cloudct.retrieval.loss import cross_loss, pixel_weights
 
 
-def measurements_for(truth, photons: int, work: Path, name: str = "single_cloud"):
-    """Noise-free measurements of the truth, rendered once and cached under ``name``."""
-    path = work / f"{name}_measurements_{photons}.nc"
+def measurements_for(truth, photons: int, work: Path, name: str = "single_cloud",
+                     method: str | None = None):
+    """Noise-free measurements of the truth, rendered once and cached under ``name`` (and the
+    render's ``method`` where it is not the forward estimator; None: the optics' default,
+    :func:`cloudct.mc.render.default_method`: combined for Mie optics)."""
+    method = method or default_method(truth)
+    tag = "" if method == "forward" else f"{method}_"
+    path = work / f"{name}_measurements_{tag}{photons}.nc"
     if path.exists():
         return load_measurements(path)
     work.mkdir(parents=True, exist_ok=True)
-    measurements = synthesize_measurements(truth, photons=photons, seed=1)
+    measurements = synthesize_measurements(truth, photons=photons, seed=1, method=method)
     save_measurements(measurements, path, overwrite=True)
     return measurements
 
 
-def truth_and_measurements(truth_file: str | None, photons: int, work: Path):
+def truth_and_measurements(truth_file: str | None, photons: int, work: Path,
+                           method: str | None = None):
     """The true medium (``truth_file``, default the bundled single cloud) and its cached
     noise-free measurements (:func:`measurements_for`, named after the file)."""
     if truth_file is None:
         truth, name = single_cloud_medium(), "single_cloud"
     else:
         truth, name = load_medium(truth_file), Path(truth_file).stem
-    return truth, measurements_for(truth, photons, work, name)
+    return truth, measurements_for(truth, photons, work, name, method)
 
 
 def at_marks(log: dict, marks_s: list[float]) -> dict:
@@ -119,6 +125,9 @@ def main() -> None:
     parser.add_argument("--minutes", type=float, default=60.0)
     parser.add_argument("--marks", type=float, nargs="+", default=[15.0, 60.0])
     parser.add_argument("--measurement-photons", type=int, default=20_000_000)
+    parser.add_argument("--measurement-method", choices=("forward", "combined"), default=None,
+                        help="the measurements' render (default: combined with Mie optics, "
+                        "else forward; runs before 2026-11-27 14:00 rendered forward)")
     parser.add_argument("--final-loss-photons", type=int, default=1_000_000,
                         help="photons of each of the two fresh renders of the final loss "
                              "(0: none)")
@@ -144,7 +153,7 @@ def main() -> None:
 
     t0 = time.perf_counter()
     truth, measurements = truth_and_measurements(
-        args.truth, args.measurement_photons, Path(args.work)
+        args.truth, args.measurement_photons, Path(args.work), args.measurement_method
     )
     synth_s = time.perf_counter() - t0
     carving_s = None
@@ -161,6 +170,7 @@ def main() -> None:
     result = {
         **run_header(args),
         "measurement_photons": args.measurement_photons,
+        "measurement_method": measurements.attrs.get("method", "forward"),
         "measurement_seconds": synth_s,
         "carving_seconds": carving_s,
         "start": args.start or f"carved hull, {args.profile} profile",
