@@ -18,9 +18,12 @@ gives the path's forward estimate the weight
 
 where p_f, p_b are the two estimators' densities of the path. Their ratio p_b / p_f is the
 forward estimate over the backward estimate of the same path; the albedos and the phase
-functions at x_2 .. x_{n-1} (drawn by both, Eq. 33) cancel, which leaves the ends:
+functions at x_2 .. x_{n-1} (drawn by both, Eq. 33) cancel, which leaves the ends and the
+aim factors f / q of each estimator's own draws (:mod:`cloudct.mc.detector_sampling`:
+forward directions aimed at the cameras, backward ones at the sun):
 
-    D_f = W T(x_n -> camera) / (r^2 Omega_pixel) c_n,     D_b = T(x_1 -> sun) c_1,
+    D_f = W T(x_n -> camera) / (r^2 Omega_pixel) c_n  prod_{i < n} (f / q)_i,
+    D_b = T(x_1 -> sun) c_1  prod_{i > 1} (f / q_s)_i,
 
 W the total projected area of the sunlit faces (a uniformly entering photon's weight,
 :mod:`cloudct.mc.sun`), r^2 Omega_pixel the local estimate's (Eqs. 36-39), c_n the local
@@ -31,10 +34,10 @@ the sun's rays and the line of sight.
 
 Both estimators compute D_f and D_b of each path they trace from the path alone, so w_f +
 w_b = 1 for every path and the sum of the two weighted images is unbiased whatever the
-weights' optimality. Where the forward photons aim at the cameras
-(:mod:`cloudct.mc.detector_sampling`), enter where the clouds are, or meet Russian roulette,
-p_f differs from what D_f assumes: the weights stay a partition of unity (unbiased), no
-longer exactly the balance heuristic.
+weights' optimality. Where the forward photons enter where the clouds are, a path meets
+Russian roulette or bounces off the ground (whose cosine-weighted draws differ between the
+two directions), the densities differ from what D_f and D_b assume: the weights stay a
+partition of unity (unbiased), no longer exactly the balance heuristic.
 
 The ratio N_b / N_f reaches the kernels as ``CameraArrays.mis_ratio``; 0 (the default)
 leaves each estimator alone and unweighted.
