@@ -61,11 +61,11 @@ DEFAULT_AIM_FRACTION = 0.1
 
 
 @njit(cache=True, inline="always")
-def aim_factor(f, lobes, a):
-    """f / q with q = (1 - a) f + a ``lobes`` (the aimed lobes' mean density at the drawn
-    direction); 0 where q is 0 (a direction outside the support of every component: never
-    drawn)."""
-    q = (1.0 - a) * f + a * lobes
+def aim_factor(f, lobes, count, a):
+    """f / q with q = (1 - a) f + a ``lobes`` / ``count`` (the aimed lobes' densities at the
+    drawn direction, summed over ``count`` lobes); 0 where q is 0 (a direction outside the
+    support of every component: never drawn)."""
+    q = (1.0 - a) * f + a * lobes / count
     return f / q if q > 0.0 else 0.0
 
 
@@ -87,7 +87,7 @@ def aimed_weight(grid, bank, cams, ix, iy, iz, px, py, pz, vx, vy, vz, wx, wy, w
             seen += 1
     if seen == 0:
         return 1.0
-    return aim_factor(f, aimed / seen, a)
+    return aim_factor(f, aimed, seen, a)
 
 
 @njit(cache=True)
@@ -128,7 +128,7 @@ def sun_aimed_weight(grid, bank, sun, ix, iy, iz, vx, vy, vz, wx, wy, wz):
         return 1.0
     f = mixture_phase_function(grid, bank, ix, iy, iz, vx * wx + vy * wy + vz * wz)
     towards_sun = -(sun.direction[0] * wx + sun.direction[1] * wy + sun.direction[2] * wz)
-    return aim_factor(f, mixture_phase_function(grid, bank, ix, iy, iz, towards_sun), a)
+    return aim_factor(f, mixture_phase_function(grid, bank, ix, iy, iz, towards_sun), 1, a)
 
 
 @njit(cache=True)

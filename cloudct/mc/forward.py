@@ -192,7 +192,7 @@ def local_estimate(
                 if cams.mis_ratio > 0.0:
                     sun_side = sun_end * (angular if sun_turn < 0.0 else sun_turn)
                     if sun_lobe >= 0.0:
-                        sun_side *= aim_factor(angular, sun_lobe, sun_aim)
+                        sun_side *= aim_factor(angular, sun_lobe, 1, sun_aim)
                     value *= forward_share(
                         sun_side, math.exp(-tau) * inv_r2_omega * angular, cams.mis_ratio
                     )
