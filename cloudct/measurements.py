@@ -163,7 +163,7 @@ def synthesize_measurements(
         backend: where the render runs, ``"cpu"``, ``"cuda"`` or ``"auto"``
             (:mod:`cloudct.mc.backend`); recorded in the attribute ``backend``.
         method: the render's estimator, ``"forward"`` or ``"combined"`` (forward photons
-            and as many backward paths, weighted by multiple importance sampling:
+            and 4 backward paths per photon, weighted by multiple importance sampling:
             :mod:`cloudct.mc.combined`); None: combined for a medium with tabulated (Mie)
             phase functions, whose diffraction peak gives the forward images fireflies,
             else forward (:func:`cloudct.mc.render.default_method`). Recorded in the

@@ -66,7 +66,7 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--photons", type=int, default=DEFAULT_PHOTONS, help="forward photons")
     p.add_argument("--method", choices=("forward", "combined"), default=None,
                    help="the render's estimator: forward, or combined (the forward photons "
-                   "and as many backward paths, weighted by multiple importance sampling: "
+                   "and 4 backward paths per photon, weighted by multiple importance sampling: "
                    "no fireflies with Mie optics); default: combined with Mie optics, else "
                    "forward")
     p.add_argument("--seed", type=int, default=0, help="seed of the render and the noise")

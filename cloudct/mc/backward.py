@@ -27,7 +27,7 @@ from numba import njit, prange
 from cloudct.mc.accumulate import add_to
 from cloudct.mc.cameras import inverse_r2_omega, pixel_ray
 from cloudct.mc.combined import backward_share
-from cloudct.mc.detector_sampling import aimed_weight, scatter_sun_aimed
+from cloudct.mc.detector_sampling import aim_factor, camera_lobes, scatter_sun_aimed
 from cloudct.mc.events import lambertian_bounce, russian_roulette
 from cloudct.mc.random import DOMAIN_BACKWARD, stream_start, uniform
 from cloudct.mc.traversal import (
@@ -95,6 +95,7 @@ def trace_pixel_sample(
     camera_turn = -1.0  # its angular factor c_n at x_n; < 0 at x_n itself: the NEE's own
     aim_product = 1.0  # the forward photon's aim factors f / q at x_{n-1} .. (passed)
     sun_aims = 1.0  # this path's own aim factors f / q_s (in its throughput)
+    lobes, seen = 0.0, 0  # the forward aim's camera lobes at the current vertex
     radiance = 0.0
     throughput = 1.0
     depth = 0
@@ -119,6 +120,7 @@ def trace_pixel_sample(
         vx, vy, vz = ux, uy, uz
         if status == BOTTOM:
             angular = ground_albedo * sz * INV_PI
+            # (the product in its original order: the plain images stay bitwise)
             contribution = throughput * ground_albedo * sz * INV_PI * math.exp(-tau_sun)
             throughput *= ground_albedo
             ux, uy, uz, state = lambertian_bounce(state)
@@ -135,9 +137,12 @@ def trace_pixel_sample(
         if ratio > 0.0:
             turn = angular if camera_turn < 0.0 else camera_turn
             aims = aim_product
-            if depth > 0 and status != BOTTOM:  # the forward photon's draw at this x_1
-                aims *= aimed_weight(grid, bank, cams, ix, iy, iz, px, py, pz,
-                                     -sx, -sy, -sz, -vx, -vy, -vz)
+            if depth > 0 and status != BOTTOM:
+                # the forward photon's draws here, towards x_{i+1} along -u: their aimed
+                # lobes, then as x_1 (from the sun, f = the estimate's own angular factor)
+                lobes, seen = camera_lobes(grid, bank, cams, ix, iy, iz, px, py, pz,
+                                           -vx, -vy, -vz)
+                aims *= aim_factor(angular, lobes, seen, cams.aim_fraction)
             contribution *= backward_share(
                 math.exp(-tau_sun) * angular * sun_aims, camera_end * turn * aims, ratio
             )
@@ -148,9 +153,11 @@ def trace_pixel_sample(
                     camera_turn = mixture_phase_function(
                         grid, bank, ix, iy, iz, vx * ux + vy * uy + vz * uz
                     )
-                else:  # the forward photon's draw here, for the paths that go on
-                    aim_product *= aimed_weight(grid, bank, cams, ix, iy, iz, px, py, pz,
-                                                -ux, -uy, -uz, -vx, -vy, -vz)
+                else:  # and as an interior vertex, arriving along -u', for the paths on
+                    turn_here = mixture_phase_function(
+                        grid, bank, ix, iy, iz, vx * ux + vy * uy + vz * uz
+                    )
+                    aim_product *= aim_factor(turn_here, lobes, seen, cams.aim_fraction)
         radiance += contribution
         depth += 1
         factor, state = russian_roulette(depth, rr_depth, rr_survival, state)

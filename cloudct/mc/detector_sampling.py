@@ -63,8 +63,10 @@ DEFAULT_AIM_FRACTION = 0.1
 @njit(cache=True, inline="always")
 def aim_factor(f, lobes, count, a):
     """f / q with q = (1 - a) f + a ``lobes`` / ``count`` (the aimed lobes' densities at the
-    drawn direction, summed over ``count`` lobes); 0 where q is 0 (a direction outside the
-    support of every component: never drawn)."""
+    drawn direction, summed over ``count`` lobes); 1 without lobes or aiming, 0 where q is 0
+    (a direction outside the support of every component: never drawn)."""
+    if count == 0 or a <= 0.0:
+        return 1.0
     q = (1.0 - a) * f + a * lobes / count
     return f / q if q > 0.0 else 0.0
 
@@ -78,6 +80,15 @@ def aimed_weight(grid, bank, cams, ix, iy, iz, px, py, pz, vx, vy, vz, wx, wy, w
     if a <= 0.0:
         return 1.0
     f = mixture_phase_function(grid, bank, ix, iy, iz, vx * wx + vy * wy + vz * wz)
+    aimed, seen = camera_lobes(grid, bank, cams, ix, iy, iz, px, py, pz, wx, wy, wz)
+    return aim_factor(f, aimed, seen, a)
+
+
+@njit(cache=True)
+def camera_lobes(grid, bank, cams, ix, iy, iz, px, py, pz, wx, wy, wz):
+    """The aimed lobes at direction w of a scattering event at (px, py, pz): sum_c f(d_c .
+    w) over the M cameras whose image holds the point, and M (q's second term, module
+    documentation; it does not depend on the incoming direction)."""
     aimed = 0.0
     seen = 0
     for view in range(cams.position.shape[0]):
@@ -85,9 +96,7 @@ def aimed_weight(grid, bank, cams, ix, iy, iz, px, py, pz, vx, vy, vz, wx, wy, w
         if row >= 0:
             aimed += mixture_phase_function(grid, bank, ix, iy, iz, cx * wx + cy * wy + cz * wz)
             seen += 1
-    if seen == 0:
-        return 1.0
-    return aim_factor(f, aimed, seen, a)
+    return aimed, seen
 
 
 @njit(cache=True)

@@ -128,7 +128,13 @@ def default_aim_fraction(bank: PhaseBank) -> float:
     """The aim fraction used when none is given: :data:`DEFAULT_AIM_FRACTION` when a phase
     function is tabulated (Mie optics, whose diffraction peak makes fireflies), else 0
     (Henyey-Greenstein and Rayleigh: measured in docs/benchmarks.md, "Mie optics")."""
-    return DEFAULT_AIM_FRACTION if np.any(bank.kind == TABULATED) else 0.0
+    return DEFAULT_AIM_FRACTION if has_peak(bank) else 0.0
+
+
+def has_peak(bank: PhaseBank) -> bool:
+    """Whether a phase function of ``bank`` is tabulated (Mie optics, with a diffraction
+    peak: what sets the aim fraction's and the synthetic images' estimator defaults)."""
+    return bool(np.any(bank.kind == TABULATED))
 
 
 # ------------------------------------------------------------------------------------------

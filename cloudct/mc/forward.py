@@ -26,7 +26,7 @@ from numba import njit, prange
 from cloudct.mc.accumulate import add_along, add_to
 from cloudct.mc.cameras import project
 from cloudct.mc.combined import forward_share
-from cloudct.mc.detector_sampling import aim_factor, scatter_aimed, sun_aimed_weight
+from cloudct.mc.detector_sampling import aim_factor, scatter_aimed
 from cloudct.mc.events import lambertian_bounce, russian_roulette
 from cloudct.mc.random import DOMAIN_FORWARD, stream_start, uniform
 from cloudct.mc.sun import sample_entry_point
@@ -360,9 +360,12 @@ def trace_photon(
                     sun_turn = mixture_phase_function(
                         grid, bank, ix, iy, iz, vx * ux + vy * uy + vz * uz
                     )
-                else:  # a backward path's draw here, arriving along -u, towards x_{i-1}
-                    back_aims *= sun_aimed_weight(
-                        grid, bank, sun, ix, iy, iz, -ux, -uy, -uz, -vx, -vy, -vz
+                elif sun_lobe >= 0.0:  # a backward path's draw here, along -u, to x_{i-1}:
+                    # its lobe about the sun is the estimate's sun_lobe above
+                    back_aims *= aim_factor(
+                        mixture_phase_function(grid, bank, ix, iy, iz,
+                                               vx * ux + vy * uy + vz * uz),
+                        sun_lobe, 1, sun.aim_fraction,
                     )
             if mode == GRADIENT:
                 # the sampled vertex term belongs to the scores of all later events

@@ -24,6 +24,7 @@ import xarray as xr
 from cloudct.mc.estimate import (
     Sampling,
     batch_means,
+    has_peak,
     kernel_inputs,
     mean_and_std_error,
     medium_arrays,
@@ -34,7 +35,6 @@ from cloudct.mc.scene import Scene
 from cloudct.mc.sun import check_cloud_share
 from cloudct.netcdf import save_netcdf
 from cloudct.optics import DEFAULT_OPTICS, PHASE_TRUNCATION, optics_name, to_optical
-from cloudct.physics.phase import TABULATED
 
 RADIANCE_UNITS = "1"  # in units of the solar irradiance perpendicular to the rays, per sr
 METHODS = ("forward", "backward", "combined")
@@ -215,8 +215,7 @@ def default_method(medium: xr.Dataset) -> str:
     ``"combined"`` for a medium with a tabulated (Mie) phase function, whose diffraction peak
     gives the forward images fireflies that the combined estimator removes (measured:
     docs/benchmarks.md, "Mie optics"), else ``"forward"``."""
-    bank = medium_arrays(medium)[1]
-    return "combined" if np.any(bank.kind == TABULATED) else "forward"
+    return "combined" if has_peak(medium_arrays(medium)[1]) else "forward"
 
 
 def default_pixel_samples(photons: int, scene: Scene) -> int:
