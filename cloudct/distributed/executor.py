@@ -55,11 +55,15 @@ class DaskExecutor:
     @property
     def workers(self) -> int:
         """Number of workers connected now (at least 1: waits for one)."""
-        n = len(self.client.scheduler_info(n_workers=-1)["workers"])
-        if n == 0:
+        return len(self.addresses())
+
+    def addresses(self) -> list[str]:
+        """Addresses of the workers connected now, sorted (at least 1: waits for one)."""
+        found = self.client.scheduler_info(n_workers=-1)["workers"]
+        if not found:
             self.client.wait_for_workers(1)
-            n = len(self.client.scheduler_info(n_workers=-1)["workers"])
-        return n
+            found = self.client.scheduler_info(n_workers=-1)["workers"]
+        return sorted(found)
 
     def ranges(self, total: int) -> list[tuple[int, int]]:
         """Split items 0 .. total - 1 into contiguous (start, count) task ranges."""
@@ -73,7 +77,7 @@ class DaskExecutor:
     def worker_threads(self) -> int:
         """The smallest number of numba threads of the workers (asked once per set of
         workers)."""
-        addresses = frozenset(self.client.scheduler_info(n_workers=-1)["workers"])
+        addresses = frozenset(self.addresses())
         if self._threads is None or self._threads[0] != addresses:
             try:
                 threads = self.client.run(_numba_threads)

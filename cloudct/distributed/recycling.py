@@ -151,14 +151,19 @@ class DistributedPathStore:
         medium_future, sent = ex.share(medium, cache=True)
         scene_future, more = ex.share(scene, cache=True)
         tag = uuid.uuid4().hex[:8]
+        # the parts go to the workers in turn, so that each holds its share of the paths'
+        # memory (the scheduler alone may queue them all on one worker); a loose
+        # restriction: a part whose worker is gone is recorded elsewhere
+        workers = ex.addresses()
         parts = []
-        for start, count in ex.ranges(int(batches)):
+        for i, (start, count) in enumerate(ex.ranges(int(batches))):
             budget = None if memory_budget is None else memory_budget * count / batches
             future = ex.submit(
                 record_part, medium_future, scene_future, seed=int(seed), per_batch=per_batch,
                 start=start, count=count, storage=storage, memory_budget=budget, sort=sort,
                 rr_depth=int(rr_depth), rr_survival=float(rr_survival), variable=variable,
-                key=f"cloudct-paths-{tag}-{start}",
+                key=f"cloudct-paths-{tag}-{start}", workers=[workers[i % len(workers)]],
+                allow_other_workers=True,
             )
             parts.append((start, count, future))
         summaries = ex.gather([
