@@ -16,6 +16,14 @@ A cos(theta0) / pi * T(ground -> sun) and bounces cosine-weighted. The same vert
 as the forward estimator are used (:mod:`cloudct.mc.events`), with the same
 medium-independent Russian roulette. The direct view of the sun's disc is not part of the
 images (a delta the pixels never contain).
+
+The same paths give a residual-weighted gradient by the path score function (Eqs. 44-49 of
+the seed paper, the path read from the camera's end): :func:`score_pixel_sample` traces a
+sample twice (the same random stream), the first time for its estimate, the second to
+deposit each estimate's score. Every next-event estimate holds the flights and the sampled
+vertices before it and its own connection to the sun and turn there, so a flight is
+weighted by the estimates at its end and beyond, as in
+:func:`cloudct.mc.forward.trace_photon`.
 """
 
 from __future__ import annotations
@@ -29,9 +37,11 @@ from cloudct.mc.cameras import inverse_r2_omega, pixel_ray
 from cloudct.mc.combined import backward_share
 from cloudct.mc.detector_sampling import aim_factor, camera_lobes, scatter_sun_aimed
 from cloudct.mc.events import lambertian_bounce, russian_roulette
+from cloudct.mc.forward import CLOUD
 from cloudct.mc.random import DOMAIN_BACKWARD, stream_start, uniform
 from cloudct.mc.traversal import (
     BOTTOM,
+    INF,
     LEFT,
     locate_point,
     march,
@@ -39,7 +49,11 @@ from cloudct.mc.traversal import (
     ray_box_entry,
     wrap_into_box,
 )
-from cloudct.physics.mixing import effective_albedo, mixture_phase_function
+from cloudct.physics.mixing import (
+    effective_albedo,
+    mixture_phase_function,
+    scattering_log_derivative,
+)
 
 INV_PI = 1.0 / math.pi
 
@@ -69,9 +83,17 @@ def camera_ray_entry(grid, cams, periodic, view, row, col, state):
 @njit(cache=True)
 def trace_pixel_sample(
     grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, index, view,
-    row, col,
+    row, col, gradient=None, weight=0.0, path_sum=0.0,
 ):
     """Radiance estimate of one backward sample of pixel (view, row, col).
+
+    With a ``gradient`` array (over (x, y, z)), the sample is traced again for its score
+    (Eq. 49): given ``path_sum``, ``weight`` times the radiance the same sample returned
+    without it, each estimate e, weighted by ``weight`` (S_e), deposits its connection to the
+    sun (-S_e ds/dbeta per voxel, the exponential's -l) and, scattered, its turn towards the
+    camera side (S_e d log(beta_s f) / dbeta); each flight deposits -W_k l, W_k = sum_{e >=
+    k} S_e the estimates at its end and beyond, and each scattering vertex its sampled turn
+    with the estimates after it (``path_sum`` minus those passed: linear in the path length).
 
     With ``cams.mis_ratio`` > 0 each next-event estimate is weighted by its share of the
     combined estimator, w_b of :mod:`cloudct.mc.combined`: the path's camera end D_f (the
@@ -99,11 +121,18 @@ def trace_pixel_sample(
     radiance = 0.0
     throughput = 1.0
     depth = 0
+    remaining = path_sum  # W_k: the weighted estimates of the vertices not yet passed
     while True:
         u, state = uniform(state)
-        status, px, py, pz, ix, iy, iz, _, walked, _ = march(
-            grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
-        )
+        if gradient is not None and remaining != 0.0:
+            status, px, py, pz, ix, iy, iz, _, walked, _ = march(
+                grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic, gradient,
+                -remaining,
+            )
+        else:
+            status, px, py, pz, ix, iy, iz, _, walked, _ = march(
+                grid, px, py, pz, ux, uy, uz, ix, iy, iz, -math.log(u), periodic
+            )
         if status == LEFT:
             return radiance, depth
         if status == BOTTOM and ground_albedo <= 0.0:
@@ -159,11 +188,44 @@ def trace_pixel_sample(
                     )
                     aim_product *= aim_factor(turn_here, lobes, seen, cams.aim_fraction)
         radiance += contribution
+        if gradient is not None:
+            value = weight * contribution  # S_e
+            if value != 0.0:
+                march(grid, px, py, pz, sx, sy, sz, ix, iy, iz, INF, periodic, gradient, -value)
+                if status != BOTTOM:
+                    add_to(gradient, ix, iy, iz, value * scattering_log_derivative(
+                        grid, bank, CLOUD, ix, iy, iz, sx * vx + sy * vy + sz * vz))
+            later = remaining - value
+            if status != BOTTOM and later != 0.0:  # the sampled turn, for the later estimates
+                add_to(gradient, ix, iy, iz, later * scattering_log_derivative(
+                    grid, bank, CLOUD, ix, iy, iz, vx * ux + vy * uy + vz * uz))
+            remaining = later
         depth += 1
         factor, state = russian_roulette(depth, rr_depth, rr_survival, state)
         if factor == 0.0:
             return radiance, depth
         throughput *= factor
+
+
+@njit(cache=True)
+def score_pixel_sample(
+    grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, index, view,
+    row, col, weight, gradient,
+):
+    """Adds to ``gradient`` ``weight`` (the pixel's residual) times the path score
+    function's estimate of dI / dbeta_cloud from backward sample ``index`` of pixel (view,
+    row, col) (:func:`trace_pixel_sample`, two passes); returns its path vertices. With
+    ``cams.mis_ratio`` > 0, the estimates carry their combined estimator's weights w_b."""
+    radiance, vertices = trace_pixel_sample(
+        grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, index,
+        view, row, col,
+    )
+    if weight * radiance != 0.0:
+        trace_pixel_sample(
+            grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, index,
+            view, row, col, gradient, weight, weight * radiance,
+        )
+    return vertices
 
 
 @njit(parallel=True, cache=True)

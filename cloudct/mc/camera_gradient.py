@@ -1,6 +1,7 @@
-"""Batch kernel of the camera-side gradient estimators (DRT and sample matching).
+"""Batch kernel of the camera-side gradient estimators (DRT, sample matching, and the path
+score function on backward paths, the combined gradient's backward half).
 
-Both estimators trace backward paths from pixels and deposit residual-weighted derivative
+The estimators trace backward paths from pixels and deposit residual-weighted derivative
 terms into per-batch gradient arrays; this module chooses the pixels and the estimator.
 The pixels come either from every pixel with a non-zero residual (``per_batch``
 samples of each pixel in each batch; sample k of pixel p in batch b has index
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 from numba import njit, prange
 
+from cloudct.mc.backward import score_pixel_sample
 from cloudct.mc.drt import drt_pixel_sample
 from cloudct.mc.pixel_sampling import draw_pixel
 from cloudct.mc.random import DOMAIN_PIXEL_TABLE, stream_start
@@ -24,7 +26,8 @@ from cloudct.mc.sample_matching import sample_matching_pixel_sample
 #: Estimator codes of the kernels, and their names in progress bars.
 DRT = 0
 SAMPLE_MATCHING = 1
-TITLES = {DRT: "DRT", SAMPLE_MATCHING: "sample matching"}
+SCORE = 2  # the path score function of backward paths (cloudct.mc.backward)
+TITLES = {DRT: "DRT", SAMPLE_MATCHING: "sample matching", SCORE: "backward score function"}
 
 
 @njit(cache=True)
@@ -32,9 +35,14 @@ def gradient_sample(
     estimator, grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
     index, view, row, col, weight, gradient, probes, quadratic, mis,
 ):
-    """One pixel sample of ``estimator`` (:data:`DRT` or :data:`SAMPLE_MATCHING`) weighted
-    by ``weight`` (the residual, or r_d / p_d when pixels are drawn); returns the path
-    vertices traced."""
+    """One pixel sample of ``estimator`` (:data:`DRT`, :data:`SAMPLE_MATCHING` or
+    :data:`SCORE`) weighted by ``weight`` (the residual, or r_d / p_d when pixels are
+    drawn); returns the path vertices traced."""
+    if estimator == SCORE:
+        return score_pixel_sample(
+            grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
+            index, view, row, col, weight, gradient,
+        )
     mis_length = grid.z_edges[grid.z_edges.size - 1] - grid.z_edges[0]
     if estimator == DRT:
         return drt_pixel_sample(

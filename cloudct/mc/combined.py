@@ -47,6 +47,18 @@ from __future__ import annotations
 
 from numba import njit
 
+#: The combined estimator's default backward paths per forward photon: of 1, 4 and 16 with
+#: Mie optics, the most efficient on the single cloud and 0.92 of the best (1) on the two
+#: cumuli, with the worst view's brightest pixel under 3x its 99th percentile on both
+#: (docs/benchmarks.md, "Mie optics").
+BACKWARD_PATHS_PER_PHOTON = 4
+
+
+def samples_per_pixel(photons: int, pixels: int) -> int:
+    """Backward samples per pixel for ``photons`` forward photons: :data:`BACKWARD_PATHS_PER_PHOTON`
+    paths per photon spread over ``pixels`` pixels (at least 1 per pixel)."""
+    return max(1, round(BACKWARD_PATHS_PER_PHOTON * photons / max(int(pixels), 1)))
+
 
 @njit(cache=True, inline="always")
 def forward_share(sun_end, camera_end, ratio):

@@ -14,6 +14,10 @@ coefficient changes with its extinction; air is not differentiated.
 - DRT on the backward estimator (:mod:`cloudct.mc.drt`), unbiased everywhere.
 - Sample matching on the backward estimator (:mod:`cloudct.mc.sample_matching`), unbiased
   everywhere, with the scattering and attenuation terms evaluated at shared probe points.
+- :func:`combined_gradient`: the path score function of the combined estimator's paths
+  (:mod:`cloudct.mc.combined`): forward photons and backward pixel samples, each path's
+  score weighted by its share, so that a peaked (Mie) phase function's fireflies leave
+  the gradient as they leave the images.
 
 All return the mean over independent batches and its standard error per voxel.
 :data:`ESTIMATORS` holds one record per estimator (:class:`GradientEstimator`: its name,
@@ -30,8 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
-from cloudct.mc.camera_gradient import DRT, SAMPLE_MATCHING, TITLES
+from cloudct.mc.camera_gradient import DRT, SAMPLE_MATCHING, SCORE, TITLES
 from cloudct.mc.cameras import PROJECTIONS
+from cloudct.mc.combined import samples_per_pixel
 from cloudct.mc.estimate import (
     Sampling,
     batch_means,
@@ -100,6 +105,70 @@ def score_function_gradient(
     return (*mean_and_std_error(per_cloud_extinction(k, gradients)), info)
 
 
+def combined_gradient(
+    medium: xr.Dataset,
+    scene: Scene,
+    residual: np.ndarray,
+    *,
+    photons: int,
+    pixel_samples: int | None = None,
+    seed: int = 0,
+    batches: int = 32,
+    rr_depth: int = 100,
+    rr_survival: float = 0.95,
+    aim_fraction: float | None = None,
+    progress: bool | None = None,
+    backend: str = "cpu",
+    executor: BatchExecutor | None = None,
+    entry_cloud_share: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """sum_d residual_d dI_d / d beta_cloud per voxel by the path score function of the
+    combined estimator's paths (:mod:`cloudct.mc.combined`).
+
+    dI/dbeta = integral of df/dbeta over the paths, and the combined estimator's weights
+    are a partition of unity of each path, so the score-function gradient of ``photons``
+    forward photons, each local estimate's score weighted by w_f
+    (:func:`score_function_gradient`), plus that of ``pixel_samples`` backward samples of
+    every pixel with a non-zero residual, each next-event estimate's score weighted by w_b
+    (:func:`cloudct.mc.backward.score_pixel_sample`), is unbiased; the weights are taken at
+    the current medium and not differentiated. None: :data:`~cloudct.mc.combined.
+    BACKWARD_PATHS_PER_PHOTON` backward paths per photon, spread over those pixels. Batch b
+    of the result is the sum of the two estimators' batch b.
+
+    Exponential transmittance only (the backward paths' score of the power law is not
+    written). Other parameters as for :func:`score_function_gradient`; ``info`` adds
+    ``pixel_samples``, ``mis_ratio``, the backward paths' ``backward_events`` and
+    ``backward_share``, their part of the gradient's sum of |g| over the voxels.
+    """
+    sampling = Sampling(batches, seed, rr_depth, rr_survival, backend)
+    per_batch = sampling.per_batch(photons)
+    residual = check_residual(residual, scene)
+    k = kernel_inputs(medium, scene, aim_fraction, entry_cloud_share=entry_cloud_share)
+    require_exponential(k.grid, "combined gradients",
+                        "use the path score function (estimator 'score')")
+    require_smooth_flight_density(k.grid, "combined gradients")
+    if pixel_samples is None:
+        pixel_samples = samples_per_pixel(per_batch * batches, np.count_nonzero(residual))
+    per_pixel = sampling.per_batch(pixel_samples)
+    k = k._replace(cams=k.cams._replace(mis_ratio=per_pixel / per_batch))
+    run_of = dict(sampling=sampling, progress=progress, executor=executor)
+    forward, run = batch_means("forward", k, (GRADIENT, residual), per_batch=per_batch,
+                               desc="combined gradient, forward", **run_of)
+    backward, run_backward = batch_means(
+        "camera-gradient", k, (SCORE, 1, False, False, residual, pixel_table(residual, "uniform")),
+        per_batch=per_pixel, desc="combined gradient, backward", **run_of,
+    )
+    share = float(np.abs(backward.mean(axis=0)).sum())
+    share /= max(share + float(np.abs(forward.mean(axis=0)).sum()), np.finfo(float).tiny)
+    info = {"photons": per_batch * batches, "pixel_samples": per_pixel * batches,
+            "mis_ratio": k.cams.mis_ratio, "backward_share": share, **run_backward, **run,
+            "events": run["events"] + run_backward["events"],
+            "backward_events": run_backward["events"],
+            "wall_time": run["wall_time"] + run_backward["wall_time"],
+            "aim_fraction": k.cams.aim_fraction, "entry_cloud_share": k.sun.cloud_share}
+    return (*mean_and_std_error(per_cloud_extinction(k, forward + backward)), info)
+
+
 def _camera_gradient(
     estimator: int, medium: xr.Dataset, scene: Scene, residual: np.ndarray, *,
     samples_per_pixel: int, seed: int, batches: int, rr_depth: int, rr_survival: float,
@@ -111,8 +180,8 @@ def _camera_gradient(
     sampling.per_batch(samples_per_pixel)  # a positive count
     residual = check_residual(residual, scene)
     k = kernel_inputs(medium, scene, aim_fraction=0.0)  # camera paths aim at no camera
-    if estimator == SAMPLE_MATCHING:
-        require_exponential(k.grid, "sample-matching gradients",
+    if estimator != DRT:
+        require_exponential(k.grid, f"{TITLES[estimator]} gradients",
                             "use DRT (estimator 'drt') or the path score function")
     require_smooth_flight_density(k.grid, "DRT gradients")
     pixels = int(np.count_nonzero(residual))
@@ -185,6 +254,34 @@ def drt_gradient(
     )
 
 
+def backward_score_gradient(
+    medium: xr.Dataset,
+    scene: Scene,
+    residual: np.ndarray,
+    *,
+    samples_per_pixel: int,
+    seed: int = 0,
+    batches: int = 32,
+    rr_depth: int = 100,
+    rr_survival: float = 0.95,
+    pixel_sampling: str = "uniform",
+    progress: bool | None = False,
+    backend: str = "cpu",
+    executor: BatchExecutor | None = None,
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """sum_d residual_d dI_d / d(cloud extinction) per voxel by the path score function of
+    backward paths (:func:`cloudct.mc.backward.score_pixel_sample`): the score of Eq. (49)
+    with the path read from the camera, each next-event estimate towards the sun holding
+    its path's flights and turns. Like the forward score function it misses the
+    in-scattering where the total extinction is zero; exponential transmittance only.
+    Parameters and the result as for :func:`drt_gradient`."""
+    return _camera_gradient(
+        SCORE, medium, scene, residual, samples_per_pixel=samples_per_pixel, seed=seed,
+        batches=batches, rr_depth=rr_depth, rr_survival=rr_survival, progress=progress,
+        backend=backend, pixel_sampling=pixel_sampling, executor=executor,
+    )
+
+
 def sample_matching_gradient(
     medium: xr.Dataset,
     scene: Scene,
@@ -242,12 +339,32 @@ class GradientEstimator:
     projections: tuple[str, ...] = PROJECTIONS
 
 
+def camera_side_names() -> str:
+    """The camera-side estimators of :data:`ESTIMATORS`, for messages."""
+    return ", ".join(e.name for e in ESTIMATORS.values() if e.camera_side)
+
+
+def _uniform_pixels_only(pixel_sampling: str, why: str) -> None:
+    if pixel_sampling != "uniform":
+        raise ValueError(f"pixel_sampling applies to the camera-side estimators "
+                         f"({camera_side_names()}): {why}")
+
+
 def _score_run(medium, scene, residual, *, photons, seed, batches, pixel_sampling, progress,
                backend, executor, entry_cloud_share):
-    if pixel_sampling != "uniform":
-        raise ValueError("pixel_sampling applies to the camera-side estimators (drt, sm): "
-                         "one forward photon serves every pixel")
+    _uniform_pixels_only(pixel_sampling, "one forward photon serves every pixel")
     return score_function_gradient(
+        medium, scene, residual, photons=photons, seed=seed, batches=batches,
+        progress=progress, backend=backend, executor=executor,
+        entry_cloud_share=entry_cloud_share,
+    )
+
+
+def _combined_run(medium, scene, residual, *, photons, seed, batches, pixel_sampling, progress,
+                  backend, executor, entry_cloud_share):
+    _uniform_pixels_only(pixel_sampling, "the combined estimator's weights take the same "
+                         "number of camera paths for every pixel")
+    return combined_gradient(
         medium, scene, residual, photons=photons, seed=seed, batches=batches,
         progress=progress, backend=backend, executor=executor,
         entry_cloud_share=entry_cloud_share,
@@ -284,6 +401,12 @@ ESTIMATORS: dict[str, GradientEstimator] = {
         GradientEstimator("sm", "sample matching (camera paths)", camera_side=True,
                           replayable=False, transmittances=("exponential",),
                           run=_camera_side_run(sample_matching_gradient)),
+        GradientEstimator("backward-score", "path score function (camera paths)",
+                          camera_side=True, replayable=False, transmittances=("exponential",),
+                          run=_camera_side_run(backward_score_gradient)),
+        GradientEstimator("combined", "path score function (forward photons and camera "
+                          "paths, MIS-weighted)", camera_side=False, replayable=False,
+                          transmittances=("exponential",), run=_combined_run),
     )
 }
 

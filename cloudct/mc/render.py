@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
+from cloudct.mc.combined import samples_per_pixel
 from cloudct.mc.estimate import (
     Sampling,
     batch_means,
@@ -38,11 +39,6 @@ from cloudct.optics import DEFAULT_OPTICS, PHASE_TRUNCATION, optics_name, to_opt
 
 RADIANCE_UNITS = "1"  # in units of the solar irradiance perpendicular to the rays, per sr
 METHODS = ("forward", "backward", "combined")
-#: The combined estimator's default backward paths per forward photon: of 1, 4 and 16 with
-#: Mie optics, the most efficient on the single cloud and 0.92 of the best (1) on the two
-#: cumuli, with the worst view's brightest pixel under 3x its 99th percentile on both
-#: (docs/benchmarks.md, "Mie optics").
-BACKWARD_PATHS_PER_PHOTON = 4
 
 
 def render(
@@ -220,11 +216,10 @@ def default_method(medium: xr.Dataset) -> str:
 
 def default_pixel_samples(photons: int, scene: Scene) -> int:
     """The combined estimator's backward samples per pixel when none are given:
-    :data:`BACKWARD_PATHS_PER_PHOTON` backward paths per forward photon, spread over the
-    scene's pixels (at least 1 per pixel)."""
+    :data:`~cloudct.mc.combined.BACKWARD_PATHS_PER_PHOTON` backward paths per forward
+    photon, spread over the scene's pixels (at least 1 per pixel)."""
     cam = scene.cameras[0]
-    pixels = len(scene.cameras) * cam.nrows * cam.ncols
-    return max(1, round(BACKWARD_PATHS_PER_PHOTON * photons / pixels))
+    return samples_per_pixel(photons, len(scene.cameras) * cam.nrows * cam.ncols)
 
 
 def images_dataset(

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-from cloudct.mc.gradient import ESTIMATORS, gradient_estimator
+from cloudct.mc.gradient import ESTIMATORS, camera_side_names, gradient_estimator
 from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS
 from cloudct.retrieval.schedule import PLATEAU_ANSWERS, SCHEDULES
 
@@ -172,8 +172,8 @@ class RetrievalConfig:
                 f"pixel_sampling must be one of {PIXEL_SAMPLINGS}, got {self.pixel_sampling!r}"
             )
         if self.pixel_sampling != "uniform" and not camera_side:
-            raise ValueError("pixel_sampling applies to the camera-side estimators (drt, sm); "
-                             "every stage uses the score function")
+            raise ValueError(f"pixel_sampling applies to the camera-side estimators "
+                             f"({camera_side_names()}); no stage uses one")
         replay = [e.name for e in records if not e.replayable]
         if replay and (quasi_newton or (self.recycling != "none" and self.recycle_gradient)):
             raise ValueError(
