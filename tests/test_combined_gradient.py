@@ -42,7 +42,7 @@ def forward_reference():
     (a non-zero total extinction)."""
     medium = gradient_medium()
     mean, error, _ = score_function_gradient(medium, gradient_scene(), pixel_weights(),
-                                             photons=200_000, seed=1, progress=False)
+                                             photons=800_000, seed=1, progress=False)
     scattering = (medium["cloud_extinction"].values + medium["air_extinction"].values) > 0.0
     return mean, error, scattering
 
@@ -60,8 +60,10 @@ def test_backward_score_function_agrees_with_the_forward_one(forward_reference):
 def test_combined_gradient_agrees_with_the_forward_score_function(forward_reference):
     f, fe, where = forward_reference
     c, ce, info = combined_gradient(gradient_medium(), gradient_scene(), pixel_weights(),
-                                    photons=100_000, pixel_samples=256, seed=3, progress=False)
-    assert info["pixel_samples"] == 256 and info["mis_ratio"] == pytest.approx(256 / 100_000)
+                                    photons=400_000, pixel_samples=4096, seed=3,
+                                    progress=False)
+    assert info["pixel_samples"] == 4096
+    assert info["mis_ratio"] == pytest.approx(4096 / 400_000)
     assert 0.2 < info["backward_share"] < 0.8, info["backward_share"]
     assert info["events"] > info["backward_events"] > 0
     assert_consistent(c[where], ce[where], f[where], BATCHES, reference_error=fe[where],
