@@ -21,9 +21,11 @@ all estimates (images of the medium rendered once with ``--residual-photons``), 
 gradient's own noise is measured.
 
 Runs are ``ESTIMATOR:PATHS[:residual]`` with ESTIMATOR one of :data:`VARIANTS` (score: the
-path score function, PATHS forward photons; drt, sm, sm4, smq, smdual: DRT and sample
-matching with 1 or 4 probes per segment, quadratic, or without the free-flight share, PATHS
-camera paths in all) and ``residual`` for pixels drawn in proportion to |residual|
+path score function, PATHS forward photons; combined: the score function of forward photons
+and 4 camera paths per photon, MIS-weighted, PATHS forward photons; drt, sm, sm4, smq,
+smdual: DRT and sample matching with 1 or 4 probes per segment, quadratic, or without the
+free-flight share, and bscore, the score function of camera paths, PATHS camera paths in
+all) and ``residual`` for pixels drawn in proportion to |residual|
 (:mod:`cloudct.mc.pixel_sampling`). Usage::
 
     python -m benchmarks gradients.signal [--pixel-blocks 2] \
@@ -47,6 +49,8 @@ import numpy as np
 from benchmarks.common import RESULTS, WORK, markdown_table, run_header, write_result
 from benchmarks.retrieval.single_cloud import measurements_for
 from cloudct.mc.gradient import (
+    backward_score_gradient,
+    combined_gradient,
     drt_gradient,
     sample_matching_gradient,
     score_function_gradient,
@@ -62,10 +66,12 @@ from cloudct.retrieval.optimizers import block_mean
 VOXEL_BLOCKS = (1, 2, 4)
 BATCHES = 32  # camera-side samples per pixel are rounded up to a multiple of this
 EQUAL_TIME = 10.0  # seconds at which the expected cosine towards the truth is reported
-#: estimator variants: (function, keyword arguments); score takes photons, the others
-#: samples per pixel
+#: estimator variants: (function, keyword arguments); score and combined take photons, the
+#: others samples per pixel
 VARIANTS = {
     "score": (score_function_gradient, {}),
+    "combined": (combined_gradient, {}),
+    "bscore": (backward_score_gradient, {}),
     "drt": (drt_gradient, {}),
     "sm": (sample_matching_gradient, {"probes": 1}),
     "sm4": (sample_matching_gradient, {"probes": 4}),
@@ -154,7 +160,7 @@ def main() -> None:
 
     def estimate(name: str, paths: int, sampling: str, seed: int):
         function, kw = VARIANTS[name]
-        if name == "score":
+        if name in ("score", "combined"):
             return function(initial, scene, residual, photons=paths, seed=seed,
                             batches=BATCHES, progress=False)
         return function(initial, scene, residual, samples_per_pixel=-(-paths // pixels),
