@@ -9,7 +9,8 @@ extinction, the template's cloud optics), the commands a user types retrieve the
 
 - with Mie optics and the full forward peak (``--phase-truncation 0``) and each gradient
   estimator (``mie_sm``: sample matching, the default before a Mie medium's retrieval took
-  the score function; ``mie_drt``; ``mie_score``, the default with the full peak), and with
+  the score function; ``mie_drt``; ``mie_score``; ``mie_combined``, the score function of
+  forward photons and camera paths weighted by multiple importance sampling), and with
   the phase functions' forward peak cut flat at 3 degrees for the retrieval's paths
   (``--phase-truncation 3``, a Mie medium's default now; ``mie_cut3_sm`` with the default
   estimator, ``mie_cut3_score``; the measurements keep the full peak), and
@@ -63,6 +64,7 @@ RUNS = {
     "mie_sm": ("mie", "mie", ["--estimator", "sm", "--phase-truncation", "0"]),
     "mie_drt": ("mie", "mie", ["--estimator", "drt", "--phase-truncation", "0"]),
     "mie_score": ("mie", "mie", ["--estimator", "score", "--phase-truncation", "0"]),
+    "mie_combined": ("mie", "mie", ["--estimator", "combined", "--phase-truncation", "0"]),
     "mie_cut3_score": ("mie", "mie", ["--estimator", "score", "--phase-truncation", "3"]),
     "mie_cut3_sm": ("mie", "mie", ["--estimator", "sm", "--phase-truncation", "3"]),
     "hg_sm": ("mie", "hg", ["--estimator", "sm"]),
@@ -72,6 +74,7 @@ RUNS = {
 }
 LABELS = {"mie_sm": "Mie optics, sample matching",
           "mie_drt": "Mie optics, DRT", "mie_score": "Mie optics, score function",
+          "mie_combined": "Mie optics, combined score function",
           "mie_cut3_score": "Mie optics cut at 3 degrees, score function",
           "mie_cut3_sm": "Mie optics cut at 3 degrees, sample matching",
           "hg_sm": "assuming HG, sample matching",
