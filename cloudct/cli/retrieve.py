@@ -34,6 +34,7 @@ from cloudct.retrieval.carving import carve, initial_medium
 from cloudct.retrieval.config import (
     AUTO,
     AVERAGING,
+    IMAGE_METHODS,
     OPTIMIZERS,
     RECYCLING,
     SPARSITY,
@@ -105,7 +106,7 @@ OPTION_FIELDS = {dest: dest for dest in (
     "step_decay", "estimator", "pixel_sampling", "averaging", "averaging_decay", "seed",
     "checkpoint_every", "transmittance", "iteration_seconds", "schedule", "significance",
     "plateau", "photon_growth", "photon_cap", "step_floor", "max_change", "sparsity_schedule",
-    "phase_truncation",
+    "phase_truncation", "image_method",
 )} | {"fresh_gradient": "recycle_gradient"}  # --fresh-gradient: recycle_gradient = false
 OPTION_NAMES = {field: "--" + dest.replace("_", "-") for dest, field in OPTION_FIELDS.items()}
 
@@ -391,6 +392,10 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
     p.add_argument("--averaging-decay", type=float,
                    help="--averaging ema: weight of the average so far at each iterate "
                         f"(default {c.averaging_decay})")
+    p.add_argument("--image-method", choices=IMAGE_METHODS,
+                   help="the residual's images: forward photons, or combined: forward and "
+                        "camera paths by multiple importance sampling, without the fireflies "
+                        "of a full Mie peak (no recycling; default forward)")
     add_phase_truncation_option(
         p, "the retrieval's medium",
         "as the initial medium records; a Mie medium that records none: 3 (said in the log)")

@@ -90,10 +90,11 @@ def trace_pixel_sample(
     With a ``gradient`` array (over (x, y, z)), the sample is traced again for its score
     (Eq. 49): given ``path_sum``, ``weight`` times the radiance the same sample returned
     without it, each estimate e, weighted by ``weight`` (S_e), deposits its connection to the
-    sun (-S_e ds/dbeta per voxel, the exponential's -l) and, scattered, its turn towards the
-    camera side (S_e d log(beta_s f) / dbeta); each flight deposits -W_k l, W_k = sum_{e >=
-    k} S_e the estimates at its end and beyond, and each scattering vertex its sampled turn
-    with the estimates after it (``path_sum`` minus those passed: linear in the path length).
+    sun (-S_e x the length in each voxel) and, scattered, its turn from the sun's rays
+    towards the camera side (S_e d log(beta_s f) / dbeta); each flight deposits -W_k x length,
+    W_k = sum_{e >= k} S_e the estimates at its end and beyond, and each scattering vertex
+    its sampled turn with the estimates after it (``path_sum`` minus those passed: linear in
+    the path length). Exponential transmittance only (the callers refuse others).
 
     With ``cams.mis_ratio`` > 0 each next-event estimate is weighted by its share of the
     combined estimator, w_b of :mod:`cloudct.mc.combined`: the path's camera end D_f (the

@@ -27,6 +27,8 @@ PER_STAGE_DEFAULTS = (
 AVERAGING = ("none", "uniform", "ema")
 #: The transmittance a retrieval assumes: exponential or the measurements' model.
 TRANSMITTANCE = ("exponential", "medium")
+#: The estimators of the residual's images (cloudct.mc.render.METHODS but the backward one).
+IMAGE_METHODS = ("forward", "combined")
 #: The L1 prior's weight: fixed, or following the gradient's noise.
 SPARSITY_SCHEDULES = ("fixed", "noise")
 #: The L1 prior's weight [1/km^2] by default (with Adam or SGD).
@@ -129,6 +131,9 @@ class RetrievalConfig:
     averaging_decay: float = 0.9  # "ema": weight of the average so far at each iterate
     transmittance: str = "exponential"  # or "medium": the measurements' transmittance model
     # and mode field (differentiated by the score function or DRT)
+    image_method: str = "forward"  # the residual's images: "forward", or "combined" (forward
+    # and camera paths weighted by multiple importance sampling, cloudct.mc.combined: without
+    # the fireflies of a full Mie peak; not with recycling, which replays forward paths)
     phase_truncation: float | None = None  # degrees: the Mie phase functions' forward peak
     # cut flat for the retrieval's paths (cloudct.optics; 0: the full peak; None: as the
     # initial medium records)
@@ -148,6 +153,13 @@ class RetrievalConfig:
         if self.phase_truncation is not None and not 0.0 <= self.phase_truncation < 90.0:
             raise ValueError(f"phase_truncation must be in [0, 90) degrees, got "
                              f"{self.phase_truncation}")
+        if self.image_method not in IMAGE_METHODS:
+            raise ValueError(f"image_method must be one of {IMAGE_METHODS}, got "
+                             f"{self.image_method!r}")
+        if self.image_method != "forward" and (self.recycling != "none" or quasi_newton):
+            raise ValueError("image_method 'combined' renders fresh images every iteration: "
+                             "path recycling and lbfgsb replay stored forward paths (use "
+                             "recycling 'none' with adam or sgd, or image_method 'forward')")
         if self.transmittance not in TRANSMITTANCE:
             raise ValueError(f"transmittance must be one of {TRANSMITTANCE}, got "
                              f"{self.transmittance!r}")

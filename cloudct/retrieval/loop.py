@@ -325,7 +325,7 @@ class Retrieval:
                 self.medium(), self._stage_data[s.stage], photons=photons,
                 gradient_photons=gradient_photons, seed=self._seed(s.iteration),
                 estimator=cfg.estimator[s.stage], pixel_sampling=cfg.pixel_sampling,
-                backend=self.backend, client=self.client,
+                backend=self.backend, client=self.client, method=cfg.image_method,
             )
             loss, gradient, resampled, ess = result.loss, result.gradient, 1.0, math.nan
             loss_error = result.loss_std_error

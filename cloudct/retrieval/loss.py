@@ -119,11 +119,13 @@ def loss_and_gradient(
     progress: bool | None = False,
     backend: str = "cpu",
     client=None,
+    method: str = "forward",
 ) -> LossGradient:
     """The loss of ``medium`` against ``measurements`` (an images Dataset carrying its
     scene, as written by :func:`cloudct.mc.render.render`) and its gradient.
 
-    ``photons`` render the images of the residual (seed ``2 seed``); ``gradient_photons``
+    ``photons`` render the images of the residual (seed ``2 seed``) by the estimator
+    ``method`` (:func:`cloudct.mc.render.render`: forward or combined); ``gradient_photons``
     (default: ``photons``) paths estimate the gradient on independent paths (seed ``2 seed
     + 1``) by ``estimator`` with ``pixel_sampling``
     (:func:`cloudct.mc.gradient.gradient_estimate`). ``backend`` as for
@@ -135,8 +137,8 @@ def loss_and_gradient(
     scene = Scene.from_dataset(measurements)
     w = pixel_weights(measurements, weights, mask)
     images = render(
-        medium, scene, photons=photons, seed=2 * seed, batches=batches, progress=progress,
-        backend=backend, executor=spread,
+        medium, scene, photons=photons, method=method, seed=2 * seed, batches=batches,
+        progress=progress, backend=backend, executor=spread,
     )
     loss, residual = image_loss(images["radiance"].values, measurements["radiance"].values, w)
     mean, std_error, info = gradient_estimate(
