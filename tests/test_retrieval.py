@@ -575,6 +575,35 @@ def test_tiny_retrieval_with_camera_side_gradients(measurements, estimator, samp
     assert np.all(np.isfinite(seconds)) and np.all(seconds > 0)
 
 
+def test_tiny_retrieval_with_the_combined_estimator(measurements, monkeypatch):
+    """The combined gradient and the residual's images by the combined estimator
+    (``image_method``) lower epsilon as the others do; recycling and lbfgsb, which replay
+    forward paths, refuse combined images."""
+    import cloudct.retrieval.loss as loss
+
+    methods = []
+
+    def render_and_note(*args, method="forward", **kw):
+        methods.append(method)
+        return render(*args, method=method, **kw)
+
+    monkeypatch.setattr(loss, "render", render_and_note)
+    truth = gradient_medium()
+    config = RetrievalConfig(iterations=30, **{**CONFIG, "photons": 20_000},
+                             estimator=("combined", "combined"), image_method="combined")
+    result = Retrieval(measurements, initial_guess(), config, truth=truth).run(progress=False)
+    assert methods == ["combined"] * 30
+    eps0, _ = epsilon_delta(truth["cloud_extinction"].values,
+                            initial_guess()["cloud_extinction"].values)
+    eps = result["log_epsilon"].values
+    assert eps[-5:].mean() < 0.6 * eps0, (eps0, eps)
+    for other in ({"recycling": "fixed"}, {"optimizer": "lbfgsb"}):
+        with pytest.raises(ValueError, match="image_method 'combined'.*replay"):
+            RetrievalConfig(image_method="combined", **other)
+    with pytest.raises(ValueError, match="image_method must be one of"):
+        RetrievalConfig(image_method="backward")
+
+
 def test_iterate_averages_and_their_restarts(measurements, monkeypatch):
     """The uniform average is the mean of the iterates since the last stage change; the
     moving average is the decay-weighted mean (Adam's bias correction), the first iterate
