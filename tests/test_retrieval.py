@@ -602,6 +602,9 @@ def test_tiny_retrieval_with_the_combined_estimator(measurements, monkeypatch):
             RetrievalConfig(image_method="combined", **other)
     with pytest.raises(ValueError, match="image_method must be one of"):
         RetrievalConfig(image_method="backward")
+    # fingerprinted where it acts (forward: as before the setting, old checkpoints resume)
+    assert run_id(measurements, RetrievalConfig(image_method="combined")) != run_id(
+        measurements, RetrievalConfig())
 
 
 def test_iterate_averages_and_their_restarts(measurements, monkeypatch):

@@ -14,6 +14,8 @@ coefficient changes with its extinction; air is not differentiated.
 - DRT on the backward estimator (:mod:`cloudct.mc.drt`), unbiased everywhere.
 - Sample matching on the backward estimator (:mod:`cloudct.mc.sample_matching`), unbiased
   everywhere, with the scattering and attenuation terms evaluated at shared probe points.
+- :func:`backward_score_gradient`: the path score function of backward paths (Eq. 49 with
+  the path read from the camera), unbiased where the score function is.
 - :func:`combined_gradient`: the path score function of the combined estimator's paths
   (:mod:`cloudct.mc.combined`): forward photons and backward pixel samples, each path's
   score weighted by its share, so that a peaked (Mie) phase function's fireflies leave

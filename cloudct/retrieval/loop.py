@@ -108,7 +108,7 @@ def run_id(measurements: xr.Dataset, config: RetrievalConfig) -> str:
     if config.plateau == "step":
         ignored += ["plateau", "photon_growth", "photon_cap"]
     for name, before in (("step_floor", 0.0), ("max_change", None),
-                         ("sparsity_schedule", "fixed")):
+                         ("sparsity_schedule", "fixed"), ("image_method", "forward")):
         if getattr(config, name) == before:
             ignored.append(name)
     settings = {k: v for k, v in asdict(config).items() if k not in ignored}
