@@ -44,6 +44,7 @@ from cloudct.measurements import (
     synthesize_measurements,
 )
 from cloudct.medium import load_medium
+from cloudct.optics import DEFAULT_OPTICS, optics_name
 from cloudct.retrieval.carving import PROFILES, carve, initial_medium
 from cloudct.retrieval.config import RetrievalConfig
 from cloudct.retrieval.loop import Retrieval, coarse_measurements
@@ -114,9 +115,12 @@ def fresh_loss(medium: xr.Dataset, data: xr.Dataset, photons: int, seed: int = 1
             "squared_residual": cross_loss(a, a, m, w)}
 
 
-def run_config(args: argparse.Namespace) -> RetrievalConfig:
-    """The retrieval settings a run with these options uses (recorded as its ``config``)."""
-    return config_from_options(args, seed=args.seed, time_limit=60.0 * args.minutes,
+def run_config(args: argparse.Namespace, optics: str = DEFAULT_OPTICS) -> RetrievalConfig:
+    """The retrieval settings a run with these options uses for a truth of cloud ``optics``
+    (recorded as its ``config``): those of ``cloudct retrieve``, the optics' defaults
+    included (:func:`~cloudct.retrieval.config.settings_for_optics`; until 2026-11-27 17:30
+    the HG defaults whatever the optics: the Mie runs before then traced the full peak)."""
+    return config_from_options(args, optics, seed=args.seed, time_limit=60.0 * args.minutes,
                                checkpoint_every=10**9)
 
 
@@ -166,7 +170,7 @@ def main() -> None:
         initial = truth.copy(deep=True)
         initial["cloud_extinction"].values = start["cloud_extinction"].values.copy()
         mask = start["cloud_mask"].values.astype(bool)
-    config = run_config(args)
+    config = run_config(args, optics_name(truth))
     result = {
         **run_header(args),
         "measurement_photons": args.measurement_photons,
