@@ -345,7 +345,9 @@ def test_a_full_peak_mie_medium_is_retrieved_with_the_combined_estimator_unless_
     mie = initial.assign_attrs(optics="mie")  # the label the rule reads
     assert Retrieval(measured, mie, RetrievalConfig(**settings_for_optics(
         full, "mie"))).config.estimator == ("combined",)
-    assert Retrieval(measured, mie, RetrievalConfig()).config.estimator == ("sm",)
+    with pytest.warns(UserWarning, match="full forward peak and the config names no "
+                      "phase_truncation"):  # a config given as it is, but said
+        assert Retrieval(measured, mie, RetrievalConfig()).config.estimator == ("sm",)
 
 
 def test_a_mie_medium_is_retrieved_with_its_peak_cut_unless_told(caplog):

@@ -18,6 +18,7 @@ import json
 import logging
 import math
 import time
+import warnings
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -34,7 +35,12 @@ from cloudct.measurements import assumed_transmittance, measured_transmittance
 from cloudct.medium import cell_edges, transmittance_model, validate_medium
 from cloudct.netcdf import InputFileError, load_netcdf, require_variables, save_netcdf
 from cloudct.optics import kernel_arrays, optics_name, phase_truncation, with_phase_truncation
-from cloudct.retrieval.config import AUTO, RetrievalConfig, settings_for_optics
+from cloudct.retrieval.config import (
+    AUTO,
+    OPTICS_TRUNCATION,
+    RetrievalConfig,
+    settings_for_optics,
+)
 from cloudct.retrieval.config_file import check_resume, config_from_json, config_to_toml
 from cloudct.retrieval.loss import (
     image_loss,
@@ -144,6 +150,16 @@ class Retrieval:
         self.client = client
         self.config = config or RetrievalConfig(
             **settings_for_optics({}, optics_name(initial), phase_truncation(initial)))
+        if config is not None and config.phase_truncation is None \
+                and optics_name(initial) in OPTICS_TRUNCATION and phase_truncation(initial) == 0:
+            warnings.warn(
+                f"the initial medium has {optics_name(initial)} optics with the full forward "
+                "peak and the config names no phase_truncation: the retrieval traces the full "
+                "peak with the config's estimators, not the defaults cloudct retrieve takes "
+                "for these optics (RetrievalConfig(**settings_for_optics(settings, optics, "
+                "truncation)) gives those; phase_truncation=0 keeps the full peak)",
+                UserWarning, stacklevel=2,
+            )
         self.measurements = measurements
         self.template = assumed_transmittance(initial, measurements, self.config.transmittance)
         if self.config.phase_truncation is not None:
