@@ -185,7 +185,7 @@ def _camera_gradient(
     if estimator != DRT:
         require_exponential(k.grid, f"{TITLES[estimator]} gradients",
                             "use DRT (estimator 'drt') or the path score function")
-    require_smooth_flight_density(k.grid, "DRT gradients")
+    require_smooth_flight_density(k.grid, f"{TITLES[estimator]} gradients")
     pixels = int(np.count_nonzero(residual))
     table = pixel_table(residual, pixel_sampling)
     # per batch: samples of each pixel (uniform), or as many samples in all as
