@@ -10,9 +10,10 @@ occasionally take a different branch. Hence:
   (independent estimates of the same expectation, :func:`mcstats.assert_consistent`);
 - path recycling: the GPU replay of a store and the CPU replay of the same store (the same
   paths, no branching on random numbers) agree to 1e-9 relative;
-- same seed, every gradient estimator (score, DRT, sample matching), with pinholes and with
-  an orthographic camera: the same gradient to rounding, but for the rare paths that branch
-  otherwise (:func:`assert_same_to_rounding`);
+- same seed, every gradient estimator (score, DRT, sample matching, the backward score
+  function, the combined one) with pinholes, and the first three with an orthographic
+  camera: the same gradient to rounding, but for the rare paths that branch otherwise
+  (:func:`assert_same_to_rounding`);
 - a second process loads the kernels that the first compiled from the on-disk cache.
 
 Run on a GPU machine with ``python -m pytest tests/test_cuda_gpu.py tests/test_cuda_sim.py``.
@@ -117,6 +118,7 @@ def power_law(medium):
 @pytest.mark.parametrize("method, photons, transmittance", [
     ("forward", 400_000, "exponential"), ("backward", 256, "exponential"),
     ("forward", 400_000, "gamma"), ("backward", 256, "gamma"),
+    ("combined", 100_000, "exponential"),
 ])
 def test_gpu_images_agree_with_cpu(method, photons, transmittance):
     medium, scene = medium_and_scene()
@@ -219,13 +221,14 @@ def assert_same_to_rounding(gpu: np.ndarray, cpu: np.ndarray, label: str) -> Non
 
 @pytest.mark.parametrize("estimator, pixel_sampling", [
     ("score", "uniform"), ("drt", "uniform"), ("sm", "uniform"), ("sm", "residual"),
+    ("backward-score", "uniform"), ("combined", "uniform"),
 ])
 def test_same_seed_gradients_equal_the_cpus(estimator, pixel_sampling):
     """Every gradient estimator, same seed on both back ends: the same random streams, so
     the same paths and the same gradient to rounding (the render's property, issue 34)."""
     medium, scene = medium_and_scene()
     residual = np.random.default_rng(2).normal(size=(2, 8, 8))
-    paths = 400_000 if estimator == "score" else 64 * 2 * 8 * 8
+    paths = {"score": 400_000, "combined": 100_000}.get(estimator, 64 * 2 * 8 * 8)
     kw = dict(estimator=estimator, photons=paths, batches=BATCHES, seed=3,
               pixel_sampling=pixel_sampling)
     cpu = gradient_estimate(medium, scene, residual, backend="cpu", **kw)

@@ -55,7 +55,7 @@ from cloudct.recycling import record_paths
 store = record_paths(medium, scenes["open"], photons=8, batches=2, seed=3)
 beta, order, log_r = np.zeros(64), np.zeros(8, np.int64), np.zeros(8)
 scratch = np.zeros(store.records)
-replay = (scene, k.periodic, k.ground, 100, 0.95, 1.0, 4, True, store.arrays, 0, 4)
+replay = (scene, k.periodic, k.ground, 100, 0.95, 4, True, store.arrays, 0, 4)
 cases["replay_render_kernel"] = (*replay, (beta, order, images, log_r, events, scratch, d))
 cases["replay_gradient_kernel"] = (*replay, (beta, order, residual, gradients, log_r, events,
                                              scratch, d))

@@ -265,18 +265,24 @@ for name, storage, sort, extra in stores:
     out[f"{label}/slot_order"] = bool(np.array_equal(store.arrays.slot[order],
                                                      np.arange(store.paths)))
 
-# the recycler: two evaluations (record, then recycle under another medium) on each back end
+# the recycler: two evaluations (record, then recycle under another medium) on each back
+# end, with forward paths alone and with the combined estimator (replays weighted, camera
+# paths fresh)
 ck.THREADS_PER_BLOCK, ck.SORT_PATHS = 32, True
-evaluations = []
-for backend in ("cpu", "cuda"):
-    recycler = Recycler(scenes["open"], photons=48, batches=3, seed=9, storage="crossings",
-                        backend=backend)
-    evaluations.append([recycler.evaluate(m, residual=residual) for m in (medium, current)])
-for t, (cpu, gpu) in enumerate(zip(*evaluations)):
-    out[f"recycler/{t}/images"] = compare(cpu.images.radiance, gpu.images.radiance)
-    out[f"recycler/{t}/gradient"] = compare(cpu.gradient, gpu.gradient)
-    out[f"recycler/{t}/info"] = [[e.info[k] for k in ("reasons", "ess_images", "ess_gradient")]
-                                 for e in (cpu, gpu)]
+for name, methods in (("recycler", ("forward", "score")),
+                      ("recycler-combined", ("combined", "combined"))):
+    evaluations = []
+    for backend in ("cpu", "cuda"):
+        recycler = Recycler(scenes["open"], photons=48, batches=3, seed=9,
+                            storage="crossings", backend=backend, image_method=methods[0],
+                            gradient_estimator=methods[1])
+        evaluations.append([recycler.evaluate(m, residual=residual) for m in (medium, current)])
+    for t, (cpu, gpu) in enumerate(zip(*evaluations)):
+        out[f"{name}/{t}/images"] = compare(cpu.images.radiance, gpu.images.radiance)
+        out[f"{name}/{t}/gradient"] = compare(cpu.gradient, gpu.gradient)
+        out[f"{name}/{t}/info"] = [[e.info[k] for k in ("reasons", "ess_images",
+                                                          "ess_gradient")]
+                                   for e in (cpu, gpu)]
 
 # the device copy of a store is made once and freed with the store
 def cached_then_freed():
@@ -520,18 +526,21 @@ def test_replay_slot_order_takes_consecutive_slots(recycled):
     assert orders and all(orders.values()), orders
 
 
-def test_recycler_on_the_cuda_backend_matches_cpu(recycled):
+@pytest.mark.parametrize("name", ["recycler", "recycler-combined"])
+def test_recycler_on_the_cuda_backend_matches_cpu(recycled, name):
     """Two evaluations (the first records the stores, the second recycles them under
-    another medium): the same decisions and ESS, images and gradient to rounding."""
+    another medium): the same decisions and ESS, images and gradient to rounding; with
+    forward paths alone, and with the combined estimator (the replays weighted, the fresh
+    camera paths the same on both back ends for the same seed)."""
     for t in (0, 1):
         for what in ("images", "gradient"):
-            case = recycled[f"recycler/{t}/{what}"]
+            case = recycled[f"{name}/{t}/{what}"]
             assert case["scale"] > 0.0
             np.testing.assert_allclose(np.array(case["gpu"]), np.array(case["cpu"]), rtol=1e-12,
                                        atol=1e-12 * case["scale"], err_msg=f"{t}/{what}")
-        cpu_info, gpu_info = recycled[f"recycler/{t}/info"]
+        cpu_info, gpu_info = recycled[f"{name}/{t}/info"]
         assert cpu_info == gpu_info
-    assert recycled["recycler/0/info"][0][0] == {"images": "initial", "gradient": "initial"}
+    assert recycled[f"{name}/0/info"][0][0] == {"images": "initial", "gradient": "initial"}
 
 
 def test_device_store_is_cached_and_freed_with_the_store(recycled):

@@ -11,7 +11,9 @@ extinction, the template's cloud optics), the commands a user types retrieve the
   estimator (``mie_sm``: sample matching, the default before a Mie medium's retrieval took
   the score function; ``mie_drt``; ``mie_score``; ``mie_combined``, the score function of
   forward photons and camera paths weighted by multiple importance sampling;
-  ``mie_combined_images``, also the residual's images by the combined estimator), and with
+  ``mie_combined_images``, also the residual's images by the combined estimator;
+  ``mie_combined_recycled``, both with adaptive path recycling: forward paths replayed,
+  camera paths fresh), and with
   the phase functions' forward peak cut flat at 3 degrees for the retrieval's paths
   (``--phase-truncation 3``, a Mie medium's default now; ``mie_cut3_sm`` with the default
   estimator, ``mie_cut3_score``; the measurements keep the full peak), and
@@ -68,6 +70,9 @@ RUNS = {
     "mie_combined": ("mie", "mie", ["--estimator", "combined", "--phase-truncation", "0"]),
     "mie_combined_images": ("mie", "mie", ["--estimator", "combined", "--image-method",
                                            "combined", "--phase-truncation", "0"]),
+    "mie_combined_recycled": ("mie", "mie", ["--estimator", "combined", "--image-method",
+                                             "combined", "--phase-truncation", "0",
+                                             "--recycling", "adaptive"]),
     "mie_cut3_score": ("mie", "mie", ["--estimator", "score", "--phase-truncation", "3"]),
     "mie_cut3_sm": ("mie", "mie", ["--estimator", "sm", "--phase-truncation", "3"]),
     "hg_sm": ("mie", "hg", ["--estimator", "sm"]),
@@ -79,6 +84,7 @@ LABELS = {"mie_sm": "Mie optics, sample matching",
           "mie_drt": "Mie optics, DRT", "mie_score": "Mie optics, score function",
           "mie_combined": "Mie optics, combined score function",
           "mie_combined_images": "Mie optics, combined score function and images",
+          "mie_combined_recycled": "Mie optics, combined, recycled (adaptive)",
           "mie_cut3_score": "Mie optics cut at 3 degrees, score function",
           "mie_cut3_sm": "Mie optics cut at 3 degrees, sample matching",
           "hg_sm": "assuming HG, sample matching",

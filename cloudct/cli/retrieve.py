@@ -395,7 +395,8 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
     p.add_argument("--image-method", choices=IMAGE_METHODS,
                    help="the residual's images: forward photons, or combined: forward and "
                         "camera paths by multiple importance sampling, without the fireflies "
-                        "of a full Mie peak (no recycling; default forward)")
+                        "of a full Mie peak (recycled: camera paths fresh; not with lbfgsb; "
+                        "default forward)")
     add_phase_truncation_option(
         p, "the retrieval's medium",
         "as the initial medium records; a Mie medium that records none: 3 (said in the log)")

@@ -306,6 +306,11 @@ class DistributedRecycler(Recycler):
 
     def __init__(self, scene: Scene, *, client=None, **kwargs) -> None:
         super().__init__(scene, **kwargs)
+        if (self.image_method, self.gradient_estimator) != ("forward", "score"):
+            raise ValueError("the combined estimator's recycling runs in one process: its "
+                             "backward half is traced here and its stores' replays take a "
+                             "weight the workers' replays do not (use Recycler, or the "
+                             "forward images and score-function gradient)")
         self.executor = executor(client)
         self._moved = [0, 0]  # bytes to and from the workers in the current evaluation
 

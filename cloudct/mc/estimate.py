@@ -369,6 +369,16 @@ def batch_kernel_table() -> str:
     return "\n".join(lines) + "\n"
 
 
+def combined_inputs(
+    k: KernelInputs, sampling: Sampling, per_batch: int, pixel_samples: int
+) -> tuple[KernelInputs, int]:
+    """The kernel inputs of the combined estimator with ``per_batch`` forward photons per
+    batch and ``pixel_samples`` backward samples of each pixel in all (their ratio N_b / N_f
+    per batch in ``cams.mis_ratio``), and the backward samples of each pixel per batch."""
+    per_pixel = sampling.per_batch(pixel_samples)
+    return k._replace(cams=k.cams._replace(mis_ratio=per_pixel / per_batch)), per_pixel
+
+
 def batch_means(
     kernel: str, k: KernelInputs, args: tuple, *, per_batch: int, sampling: Sampling,
     progress: bool | None = None, executor: BatchExecutor | None = None, desc: str = "",

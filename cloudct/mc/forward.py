@@ -120,6 +120,50 @@ def connection_angular(grid, bank, ix, iy, iz, mu, ground_albedo):
     return ground_albedo * mu * INV_PI
 
 
+@njit(cache=True, inline="always")
+def combined_forward_weight(cams, angular, camera_end, sun_end, sun_turn, sun_aim, sun_lobe):
+    """The weight w_f of a local estimate in the combined estimator (:mod:`cloudct.mc.
+    combined`): ``angular`` its angular factor c_n, ``camera_end`` T(x_n -> camera) /
+    (r^2 Omega_pixel); the path's sun end, turn at x_1, aim fraction and lobe about the sun
+    as :func:`local_estimate` takes them."""
+    sun_side = sun_end * (angular if sun_turn < 0.0 else sun_turn)
+    if sun_lobe >= 0.0:
+        sun_side *= aim_factor(angular, sun_lobe, 1, sun_aim)
+    return forward_share(sun_side, camera_end * angular, cams.mis_ratio)
+
+
+@njit(cache=True, inline="always")
+def sun_lobe_at(grid, bank, sun, ix, iy, iz, ux, uy, uz, depth):
+    """The lobe about the sun with which a backward path would draw its direction at a
+    scattering vertex reached along (ux, uy, uz): f at the angle of -u with the sun's rays;
+    -1 where it draws none aimed (the first vertex, or no aiming at the sun)."""
+    if depth == 0 or sun.aim_fraction <= 0.0:
+        return -1.0
+    return mixture_phase_function(
+        grid, bank, ix, iy, iz, sun.direction[0] * ux + sun.direction[1] * uy
+        + sun.direction[2] * uz,
+    )
+
+
+@njit(cache=True, inline="always")
+def sun_side_after_turn(
+    grid, bank, sun, ix, iy, iz, vx, vy, vz, ux, uy, uz, depth, sun_turn, back_aims, sun_lobe
+):
+    """A forward path's sun-side terms of the combined estimator after it turns from v to u
+    at a scattering vertex: at the first (``depth`` 0) the next-event estimate's angular
+    factor c_1; further on a backward path's aim factor f / q_s for drawing -v there
+    (``sun_lobe`` >= 0). Returns ``(sun_turn, back_aims)``."""
+    if depth == 0:
+        return mixture_phase_function(grid, bank, ix, iy, iz, vx * ux + vy * uy + vz * uz), \
+            back_aims
+    if sun_lobe >= 0.0:
+        back_aims *= aim_factor(
+            mixture_phase_function(grid, bank, ix, iy, iz, vx * ux + vy * uy + vz * uz),
+            sun_lobe, 1, sun.aim_fraction,
+        )
+    return sun_turn, back_aims
+
+
 @njit(cache=True)
 def local_estimate(
     grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz, weight, ground_albedo,
@@ -190,11 +234,9 @@ def local_estimate(
                     )[7]
                 value = weight * angular * math.exp(-tau) * inv_r2_omega
                 if cams.mis_ratio > 0.0:
-                    sun_side = sun_end * (angular if sun_turn < 0.0 else sun_turn)
-                    if sun_lobe >= 0.0:
-                        sun_side *= aim_factor(angular, sun_lobe, 1, sun_aim)
-                    value *= forward_share(
-                        sun_side, math.exp(-tau) * inv_r2_omega * angular, cams.mis_ratio
+                    value *= combined_forward_weight(
+                        cams, angular, math.exp(-tau) * inv_r2_omega, sun_end, sun_turn,
+                        sun_aim, sun_lobe,
                     )
                 if mode == RENDER:
                     add_to(image, view, row, col, value)
@@ -337,11 +379,7 @@ def trace_photon(
             if cams.mis_ratio > 0.0:
                 if depth == 0:
                     sun_end = sun_transmittance(grid, sun, periodic, px, py, pz, ix, iy, iz)
-                elif sun.aim_fraction > 0.0:  # f at the angle of -u with the sun's direction
-                    sun_lobe = mixture_phase_function(
-                        grid, bank, ix, iy, iz,
-                        sun.direction[0] * ux + sun.direction[1] * uy + sun.direction[2] * uz,
-                    )
+                sun_lobe = sun_lobe_at(grid, bank, sun, ix, iy, iz, ux, uy, uz, depth)
             s_event = 0.0
             if mode < COUNT:
                 s_event = local_estimate(
@@ -356,17 +394,10 @@ def trace_photon(
             weight *= aimed
             aim_product *= aimed
             if cams.mis_ratio > 0.0:
-                if depth == 0:  # the turn from the sun's rays at x_1
-                    sun_turn = mixture_phase_function(
-                        grid, bank, ix, iy, iz, vx * ux + vy * uy + vz * uz
-                    )
-                elif sun_lobe >= 0.0:  # a backward path's draw here, along -u, to x_{i-1}:
-                    # its lobe about the sun is the estimate's sun_lobe above
-                    back_aims *= aim_factor(
-                        mixture_phase_function(grid, bank, ix, iy, iz,
-                                               vx * ux + vy * uy + vz * uz),
-                        sun_lobe, 1, sun.aim_fraction,
-                    )
+                sun_turn, back_aims = sun_side_after_turn(
+                    grid, bank, sun, ix, iy, iz, vx, vy, vz, ux, uy, uz, depth, sun_turn,
+                    back_aims, sun_lobe,
+                )
             if mode == GRADIENT:
                 # the sampled vertex term belongs to the scores of all later events
                 mu = vx * ux + vy * uy + vz * uz

@@ -40,9 +40,11 @@ from cloudct.mc.camera_gradient import DRT, SAMPLE_MATCHING, SCORE, TITLES
 from cloudct.mc.cameras import PROJECTIONS
 from cloudct.mc.combined import samples_per_pixel
 from cloudct.mc.estimate import (
+    KernelInputs,
     Sampling,
     batch_means,
     check_residual,
+    combined_inputs,
     kernel_inputs,
     mean_and_std_error,
     per_cloud_extinction,
@@ -151,15 +153,11 @@ def combined_gradient(
     require_smooth_flight_density(k.grid, "combined gradients")
     if pixel_samples is None:
         pixel_samples = samples_per_pixel(per_batch * batches, np.count_nonzero(residual))
-    per_pixel = sampling.per_batch(pixel_samples)
-    k = k._replace(cams=k.cams._replace(mis_ratio=per_pixel / per_batch))
+    k, per_pixel = combined_inputs(k, sampling, per_batch, pixel_samples)
     run_of = dict(sampling=sampling, progress=progress, executor=executor)
     forward, run = batch_means("forward", k, (GRADIENT, residual), per_batch=per_batch,
                                desc="combined gradient, forward", **run_of)
-    backward, run_backward = batch_means(
-        "camera-gradient", k, (SCORE, 1, False, False, residual, pixel_table(residual, "uniform")),
-        per_batch=per_pixel, desc="combined gradient, backward", **run_of,
-    )
+    backward, run_backward = backward_score_batches(k, residual, per_pixel, **run_of)
     share = float(np.abs(backward.mean(axis=0)).sum())
     share /= max(share + float(np.abs(forward.mean(axis=0)).sum()), np.finfo(float).tiny)
     info = {"photons": per_batch * batches, "pixel_samples": per_pixel * batches,
@@ -169,6 +167,21 @@ def combined_gradient(
             "wall_time": run["wall_time"] + run_backward["wall_time"],
             "aim_fraction": k.cams.aim_fraction, "entry_cloud_share": k.sun.cloud_share}
     return (*mean_and_std_error(per_cloud_extinction(k, forward + backward)), info)
+
+
+def backward_score_batches(
+    k: KernelInputs, residual: np.ndarray, per_pixel: int, **run_of
+) -> tuple[np.ndarray, dict]:
+    """The combined gradient's backward half, per batch: the backward score function of
+    ``per_pixel`` samples in each batch of every pixel with a non-zero ``residual``, each
+    next-event estimate's score weighted by w_b (``k.cams.mis_ratio`` > 0;
+    :func:`~cloudct.mc.estimate.combined_inputs`); in the kernels' extinction (apply
+    :func:`~cloudct.mc.estimate.per_cloud_extinction`). ``run_of`` as for
+    :func:`~cloudct.mc.estimate.batch_means`."""
+    return batch_means(
+        "camera-gradient", k, (SCORE, 1, False, False, residual, pixel_table(residual, "uniform")),
+        per_batch=per_pixel, desc="combined gradient, backward", **run_of,
+    )
 
 
 def _camera_gradient(
@@ -339,6 +352,8 @@ class GradientEstimator:
     #: the back ends (:mod:`cloudct.mc.backend`) and camera projections it runs on
     backends: tuple[str, ...] = ("cpu", "cuda")
     projections: tuple[str, ...] = PROJECTIONS
+    #: what path recycling does with its paths, where it is replayable
+    recycled: str = "recorded and replayed"
 
 
 def camera_side_names() -> str:
@@ -407,8 +422,10 @@ ESTIMATORS: dict[str, GradientEstimator] = {
                           camera_side=True, replayable=False, transmittances=("exponential",),
                           run=_camera_side_run(backward_score_gradient)),
         GradientEstimator("combined", "path score function (forward photons and camera "
-                          "paths, MIS-weighted)", camera_side=False, replayable=False,
-                          transmittances=("exponential",), run=_combined_run),
+                          "paths, MIS-weighted)", camera_side=False, replayable=True,
+                          transmittances=("exponential",), run=_combined_run,
+                          recycled="forward photons replayed, camera paths fresh (this "
+                          "process)"),
     )
 }
 
@@ -433,7 +450,7 @@ def support_table() -> str:
             ", ".join(r.projections),
             ", ".join(PIXEL_SAMPLINGS) if r.camera_side else "(each photon serves every pixel)",
             *(family(r, f) for f in FAMILIES),
-            "recorded and replayed" if r.replayable else "refused (fresh paths each iteration)",
+            r.recycled if r.replayable else "refused (fresh paths each iteration)",
         ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

@@ -23,8 +23,10 @@ import xarray as xr
 
 from cloudct.mc.combined import samples_per_pixel
 from cloudct.mc.estimate import (
+    KernelInputs,
     Sampling,
     batch_means,
+    combined_inputs,
     has_peak,
     kernel_inputs,
     mean_and_std_error,
@@ -179,12 +181,10 @@ def render_batches(
     if method == "combined":
         if pixel_samples is None:
             pixel_samples = default_pixel_samples(per_batch * batches, scene)
-        per_pixel = sampling.per_batch(pixel_samples)
-        k = k._replace(cams=k.cams._replace(mis_ratio=per_pixel / per_batch))
+        k, per_pixel = combined_inputs(k, sampling, per_batch, pixel_samples)
         images, run = batch_means("forward", k, (RENDER, None), per_batch=per_batch,
                                   desc="combined, forward", **run_of)
-        backward, run_backward = batch_means("backward", k, (), per_batch=per_pixel,
-                                             desc="combined, backward", **run_of)
+        backward, run_backward = backward_images(k, per_pixel, **run_of)
         total = float(images.sum() + backward.sum())
         images += backward
         run = {**run_backward, **run, "events": run["events"] + run_backward["events"],
@@ -212,6 +212,17 @@ def default_method(medium: xr.Dataset) -> str:
     gives the forward images fireflies that the combined estimator removes (measured:
     docs/benchmarks.md, "Mie optics"), else ``"forward"``."""
     return "combined" if has_peak(medium_arrays(medium)[1]) else "forward"
+
+
+def backward_images(
+    k: KernelInputs, per_pixel: int, **run_of
+) -> tuple[np.ndarray, dict]:
+    """The combined estimator's backward half of the images, per batch: ``per_pixel``
+    samples of every pixel in each batch, each next-event estimate weighted by w_b
+    (``k.cams.mis_ratio`` > 0; :func:`combined_inputs`). ``run_of``: ``sampling``,
+    ``progress``, ``executor`` of :func:`~cloudct.mc.estimate.batch_means`."""
+    return batch_means("backward", k, (), per_batch=per_pixel, desc="combined, backward",
+                       **run_of)
 
 
 def default_pixel_samples(photons: int, scene: Scene) -> int:

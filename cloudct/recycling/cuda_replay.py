@@ -60,8 +60,8 @@ def replay_thread_path(t, order, S, per_batch, first, count):
 
 @cuda.jit(cache=True)
 def replay_render_kernel(
-    scene, periodic, ground, rr_depth, rr_survival, power, per_batch, use_crossings, S, first,
-    count, out,
+    scene, periodic, ground, rr_depth, rr_survival, per_batch, use_crossings, S, first, count,
+    out,
 ):
     """RENDER replay of ranks ``first .. first + count - 1`` of every batch: out = (beta,
     order, images[nbatch, view, row, col], log_ratio[npaths], events[nbatch],
@@ -72,8 +72,8 @@ def replay_render_kernel(
         return
     b, j, p = replay_thread_path(t, order, S, per_batch, first, count)
     depth, _, log_r = replay_path(
-        scene.grid, scene.bank, scene.cams, scene.copies, periodic, ground, rr_depth,
-        rr_survival, power, beta, S, p, use_crossings, RENDER, images[b], no_residual,
+        scene.grid, scene.bank, scene.cams, scene.copies, scene.sun, periodic, ground,
+        rr_depth, rr_survival, beta, S, p, use_crossings, RENDER, images[b], no_residual,
         no_residual, None, scratch[S.path_start[p]:],
     )
     log_ratio[j] = log_r
@@ -82,8 +82,8 @@ def replay_render_kernel(
 
 @cuda.jit(cache=True)
 def replay_gradient_kernel(
-    scene, periodic, ground, rr_depth, rr_survival, power, per_batch, use_crossings, S, first,
-    count, out,
+    scene, periodic, ground, rr_depth, rr_survival, per_batch, use_crossings, S, first, count,
+    out,
 ):
     """GRADIENT replay (as :func:`replay_render_kernel`): out = (beta, order, residual[view,
     row, col], gradients[nbatch, x, y, z], log_ratio, events, scratch, no_image[1, 1, 1])."""
@@ -93,8 +93,8 @@ def replay_gradient_kernel(
         return
     b, j, p = replay_thread_path(t, order, S, per_batch, first, count)
     depth, _, log_r = replay_path(
-        scene.grid, scene.bank, scene.cams, scene.copies, periodic, ground, rr_depth,
-        rr_survival, power, beta, S, p, use_crossings, GRADIENT, no_image, residual,
+        scene.grid, scene.bank, scene.cams, scene.copies, scene.sun, periodic, ground,
+        rr_depth, rr_survival, beta, S, p, use_crossings, GRADIENT, no_image, residual,
         gradients[b], None, scratch[S.path_start[p]:],
     )
     log_ratio[j] = log_r
@@ -208,8 +208,8 @@ class ReplayLauncher(ck.Launcher):
         self.host = (out, log_ratio, events)
         self.scene = device_scene(k)
         self.args = (
-            k.periodic, k.ground, rr_depth, rr_survival, k.sun.power,
-            store.per_batch, store.has_crossings, resident.arrays,
+            k.periodic, k.ground, rr_depth, rr_survival, store.per_batch, store.has_crossings,
+            resident.arrays,
         )
         what = "the per-batch images" if residual is None else "the per-batch gradients"
         ck.check_fits(out.nbytes + log_ratio.nbytes, what + " and log r per path")

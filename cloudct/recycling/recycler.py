@@ -20,6 +20,17 @@ images fresh instead would cost about as much time as replaying them (both are d
 the local estimates), so both are stored and recycled. Each store has its own age and is
 resampled on its own; every decision is logged in :attr:`Recycler.log` and through the
 ``logging`` module.
+
+With ``image_method="combined"`` or ``gradient_estimator="combined"`` the images or the
+gradient are the combined estimator's (:mod:`cloudct.mc.combined`; a Mie medium's full
+forward peak): the stored forward paths are replayed with each local estimate weighted by
+its share w_f under the current medium, and the other half, backward paths with their
+next-event estimates weighted by w_b, is traced fresh under the current medium every
+evaluation (:func:`~cloudct.mc.render.backward_images`,
+:func:`~cloudct.mc.gradient.backward_score_batches`), with independent random streams per
+evaluation. The two halves are independent, each unbiased for its share of every path
+(w_f + w_b = 1 per path under the same medium), so their sum is unbiased; only the forward
+half is recycled.
 """
 
 from __future__ import annotations
@@ -35,6 +46,17 @@ import numpy as np
 import xarray as xr
 
 from cloudct.mc.backend import resolve_backend
+from cloudct.mc.combined import samples_per_pixel
+from cloudct.mc.estimate import (
+    KernelInputs,
+    Sampling,
+    check_residual,
+    combined_inputs,
+    kernel_inputs,
+    per_cloud_extinction,
+)
+from cloudct.mc.gradient import backward_score_batches
+from cloudct.mc.render import backward_images, default_pixel_samples
 from cloudct.mc.scene import Scene
 from cloudct.medium import cell_edges
 from cloudct.recycling.policy import AdaptiveESS, Policy
@@ -51,6 +73,11 @@ from cloudct.recycling.store import PathStore, check_same_grid, record_paths
 logger = logging.getLogger(__name__)
 
 STORES = ("images", "gradient")
+#: The recycler's images: forward paths replayed, or the combined estimator's
+IMAGE_METHODS = ("forward", "combined")
+#: The recycler's gradient: the path score function of replayed forward paths, or the
+#: combined estimator's
+GRADIENT_ESTIMATORS = ("score", "combined")
 
 
 class Evaluation(NamedTuple):
@@ -119,6 +146,12 @@ class Recycler:
         once, here (``"auto"`` warns once where it falls back to the CPU). With ``"cuda"``
         each store is copied to the GPU on its first replay and kept there while it is in
         use. Paths are recorded on the CPU.
+    image_method, gradient_estimator
+        ``"combined"``: the images, or the gradient, of the combined estimator (module
+        documentation), with :data:`~cloudct.mc.combined.BACKWARD_PATHS_PER_PHOTON`
+        backward paths per stored path, traced fresh every evaluation over every pixel
+        (images) or those with a non-zero residual (gradient); ``"forward"`` and
+        ``"score"`` (the defaults) replay the forward paths alone.
     """
 
     def __init__(
@@ -138,7 +171,17 @@ class Recycler:
         progress: bool | None = False,
         variable: np.ndarray | None = None,
         backend: str = "cpu",
+        image_method: str = "forward",
+        gradient_estimator: str = "score",
     ) -> None:
+        if image_method not in IMAGE_METHODS:
+            raise ValueError(f"image_method must be one of {IMAGE_METHODS}, got "
+                             f"{image_method!r}")
+        if gradient_estimator not in GRADIENT_ESTIMATORS:
+            raise ValueError(f"gradient_estimator must be one of {GRADIENT_ESTIMATORS}, got "
+                             f"{gradient_estimator!r}")
+        self.image_method = image_method
+        self.gradient_estimator = gradient_estimator
         gradient_photons = photons if gradient_photons is None else gradient_photons
         if int(photons) < 1 or int(gradient_photons) < 1:
             raise ValueError("photons and gradient_photons must be positive counts")
@@ -220,11 +263,67 @@ class Recycler:
         """The :func:`~cloudct.recycling.replay.weight_summary` of the store's paths."""
         return weight_summary(correction_log_weights(store, medium, self.backend), store.batches)
 
-    def _replay_images(self, store, medium: xr.Dataset) -> tuple[np.ndarray, dict]:
-        return replay_images(store, medium, self.progress, self.backend)
+    def _replay_images(
+        self, store, medium: xr.Dataset, mis_ratio: float = 0.0
+    ) -> tuple[np.ndarray, dict]:
+        return replay_images(store, medium, self.progress, self.backend, mis_ratio)
 
-    def _replay_gradient(self, store, medium: xr.Dataset, residual: np.ndarray) -> tuple:
-        return replay_gradient(store, medium, residual, self.progress, self.backend)
+    def _replay_gradient(
+        self, store, medium: xr.Dataset, residual: np.ndarray, mis_ratio: float = 0.0
+    ) -> tuple:
+        return replay_gradient(store, medium, residual, self.progress, self.backend, mis_ratio)
+
+    # -- the combined estimator: replayed forward half, fresh backward half ---------------
+
+    def _backward_half(
+        self, medium: xr.Dataset, store, pixel_samples: int, stream: int
+    ) -> tuple[KernelInputs, int, Sampling]:
+        """Kernel inputs of ``medium`` with the combined estimator's ratio for ``store``'s
+        paths and ``pixel_samples`` backward samples of each pixel, those samples per batch,
+        and the sampling of this evaluation's backward paths (stream 2: the images', 3: the
+        gradient's; independent of the stores' and of every other evaluation's)."""
+        sampling = Sampling(self.batches, store_seed(self.seed, self.iteration, stream),
+                            self.rr_depth, self.rr_survival, self.backend)
+        k = kernel_inputs(medium, self.scene, store.info.get("aim_fraction"))  # the paths' aim
+        k, per_pixel = combined_inputs(k, sampling, store.per_batch, pixel_samples)
+        return k, per_pixel, sampling
+
+    def _images(self, store, medium: xr.Dataset) -> tuple[np.ndarray, dict]:
+        """Per-batch images of ``medium`` by the recycler's image method, and run info."""
+        if self.image_method == "forward":
+            return self._replay_images(store, medium)
+        k, per_pixel, sampling = self._backward_half(
+            medium, store, default_pixel_samples(store.paths, self.scene), 2
+        )
+        forward, info = self._replay_images(store, medium, k.cams.mis_ratio)
+        backward, run = backward_images(k, per_pixel, sampling=sampling, progress=self.progress)
+        return forward + backward, {
+            **info, "pixel_samples": per_pixel * self.batches,
+            "backward_events": run["events"], "backward_time": run["wall_time"],
+            "wall_time": info["wall_time"] + run["wall_time"],
+        }
+
+    def _gradient(self, store, medium: xr.Dataset, residual: np.ndarray) -> tuple:
+        """(mean, std_error, info) of the gradient by the recycler's estimator."""
+        if self.gradient_estimator == "score":
+            return self._replay_gradient(store, medium, residual)
+        residual = check_residual(residual, self.scene)
+        k, per_pixel, sampling = self._backward_half(
+            medium, store, samples_per_pixel(store.paths, np.count_nonzero(residual)), 3
+        )
+        mean, std_error, info = self._replay_gradient(store, medium, residual,
+                                                      k.cams.mis_ratio)
+        batches, run = backward_score_batches(k, residual, per_pixel, sampling=sampling,
+                                              progress=self.progress)
+        batches = per_cloud_extinction(k, batches)
+        if store.variable is not None:
+            batches[:, ~store.variable] = 0.0  # as the replay's (no crossings there)
+        # independent halves: their variances add
+        return mean + batches.mean(axis=0), np.hypot(
+            std_error, batches.std(axis=0, ddof=1) / math.sqrt(self.batches)
+        ), {**info, "pixel_samples": per_pixel * self.batches,
+            "backward_events": run["events"], "backward_time": run["wall_time"],
+            "wall_time": info["wall_time"] + run["wall_time"]}
 
     def _extra_info(self) -> dict:
         """Entries that an evaluation's info adds (none here)."""
@@ -272,13 +371,17 @@ class Recycler:
             reasons[name] = reason
 
         store = self._slots["images"].store
-        batch_images, image_info = self._replay_images(store, medium)
+        batch_images, image_info = self._images(store, medium)
         images = recycled_images(store, batch_images, image_info)
+        if self.image_method == "combined":
+            images.attrs.update(method="combined-recycled",
+                                pixel_samples=image_info["pixel_samples"],
+                                mis_ratio=image_info["mis_ratio"])
         weights = gradient = gradient_se = None
         gradient_info: dict = {}
         if residual is not None:
             weights = residual(images) if callable(residual) else residual
-            gradient, gradient_se, gradient_info = self._replay_gradient(
+            gradient, gradient_se, gradient_info = self._gradient(
                 self._slots["gradient"].store, medium, weights
             )
         for name in needed:

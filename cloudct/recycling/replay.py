@@ -54,10 +54,16 @@ from cloudct.recycling.replay_kernels import (
 from cloudct.recycling.store import PathStore, check_not_empty, check_same_grid, run_batches
 
 
-def _inputs(store: PathStore, medium: xr.Dataset) -> tuple[KernelInputs, np.ndarray]:
+def _inputs(
+    store: PathStore, medium: xr.Dataset, mis_ratio: float = 0.0
+) -> tuple[KernelInputs, np.ndarray]:
     check_not_empty(store)
     check_same_grid(store, cell_edges(medium))
-    k = kernel_inputs(medium, store.scene)
+    if not mis_ratio >= 0.0:
+        raise ValueError(f"mis_ratio must be >= 0, got {mis_ratio}")
+    # the recording's aim: the combined estimator's weights take the paths' aim factors
+    k = kernel_inputs(medium, store.scene, store.info.get("aim_fraction"))
+    k = k._replace(cams=k.cams._replace(mis_ratio=float(mis_ratio)))
     require_exponential(k.grid, "recycled paths")  # the store was recorded exponentially
     beta = flat_total_extinction(k.grid)
     if store.variable is not None:
@@ -129,8 +135,8 @@ def correction_log_weights(
 
 def _replay_head(k: KernelInputs, s: Sampling, per_batch: int, args: tuple) -> tuple:
     store, beta = args[:2]
-    return (k.grid, k.bank, k.cams, k.copies, k.periodic, k.ground, s.rr_depth, s.rr_survival,
-            k.sun.power, beta, store.arrays, store.has_crossings, per_batch)
+    return (k.grid, k.bank, k.cams, k.copies, k.sun, k.periodic, k.ground, s.rr_depth,
+            s.rr_survival, beta, store.arrays, store.has_crossings, per_batch)
 
 
 #: The replays as batch kernels of the engine's registry. Their ``args``: (store, beta, log r
@@ -156,10 +162,10 @@ REPLAY_KERNELS = tuple(register_batch_kernel(record) for record in (
 
 def _replay(
     store: PathStore, medium: xr.Dataset, residual: np.ndarray | None,
-    progress: bool | None, desc: str, backend: str,
+    progress: bool | None, desc: str, backend: str, mis_ratio: float,
 ) -> tuple[np.ndarray, dict]:
     backend = resolve_backend(backend)
-    k, beta = _inputs(store, medium)
+    k, beta = _inputs(store, medium, mis_ratio)
     b = store.batches
     log_r = np.empty(store.paths)
     events = np.zeros(b, dtype=np.int64)
@@ -191,6 +197,7 @@ def _replay(
         "sorted": store.sorted,
         "seed": store.seed,
         "backend": backend,
+        "mis_ratio": k.cams.mis_ratio,
         "weight_summary": summary,
         "log_r": log_r,
     }
@@ -198,13 +205,20 @@ def _replay(
 
 
 def replay_images(
-    store: PathStore, medium: xr.Dataset, progress: bool | None = False, backend: str = "cpu"
+    store: PathStore, medium: xr.Dataset, progress: bool | None = False, backend: str = "cpu",
+    mis_ratio: float = 0.0,
 ) -> tuple[np.ndarray, dict]:
     """Images of ``medium`` from the stored paths, per batch: float64[batches, view, row,
     col] (batch means, like :func:`cloudct.mc.render.render_batches`) and run information
     (``ess``, ``ess_fraction`` of the whole-path correction factors, ``log_r`` per path,
-    ``backend`` run on)."""
-    return _replay(store, medium, None, progress, "recycled images", backend)
+    ``backend`` run on).
+
+    ``mis_ratio`` > 0 makes them the forward half of the combined estimator
+    (:mod:`cloudct.mc.combined`): each local estimate weighted by w_f under ``medium``, with
+    ``mis_ratio`` backward samples of each pixel per stored path (N_b / N_f, per batch);
+    backward samples traced under ``medium`` with the same ratio add the other half
+    (:class:`~cloudct.recycling.recycler.Recycler` with ``image_method="combined"``)."""
+    return _replay(store, medium, None, progress, "recycled images", backend, mis_ratio)
 
 
 def replay_render(
@@ -242,11 +256,13 @@ def replay_batch_gradients(
     residual: np.ndarray,
     progress: bool | None = False,
     backend: str = "cpu",
+    mis_ratio: float = 0.0,
 ) -> tuple[np.ndarray, dict]:
     """The gradient of :func:`replay_gradient` per batch: float64[batches, x, y, z] (batch
-    means) and run information with ``log_r`` per path, like :func:`replay_images`."""
+    means) and run information with ``log_r`` per path, like :func:`replay_images` (and
+    its ``mis_ratio``: the forward half of the combined gradient)."""
     residual = check_residual(residual, store.scene)
-    return _replay(store, medium, residual, progress, "recycled gradient", backend)
+    return _replay(store, medium, residual, progress, "recycled gradient", backend, mis_ratio)
 
 
 def replay_gradient(
@@ -255,11 +271,14 @@ def replay_gradient(
     residual: np.ndarray,
     progress: bool | None = False,
     backend: str = "cpu",
+    mis_ratio: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """sum_d residual_d dI_d / d beta_cloud per voxel under ``medium`` from the stored paths
     (Eq. 53 with the path score function of Eqs. 44-49). Returns ``(mean, std_error,
-    info)`` like :func:`cloudct.mc.gradient.score_function_gradient`."""
-    batch_means, info = replay_batch_gradients(store, medium, residual, progress, backend)
+    info)`` like :func:`cloudct.mc.gradient.score_function_gradient`; ``mis_ratio`` as for
+    :func:`replay_images`."""
+    batch_means, info = replay_batch_gradients(store, medium, residual, progress, backend,
+                                               mis_ratio)
     return (
         batch_means.mean(axis=0),
         batch_means.std(axis=0, ddof=1) / math.sqrt(store.batches),

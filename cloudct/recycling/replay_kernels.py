@@ -15,15 +15,21 @@ import numpy as np
 from numba import njit, prange
 
 from cloudct.mc.accumulate import add_along, add_to
+from cloudct.mc.detector_sampling import aimed_weight
 from cloudct.mc.forward import (
     CLOUD,
     ESCAPE,
     GRADIENT,
     GROUND,
+    INV_PI,
     RENDER,
     SCATTER,
+    combined_forward_weight,
     connection_angular,
     local_estimate,
+    sun_lobe_at,
+    sun_side_after_turn,
+    sun_transmittance,
 )
 from cloudct.mc.traversal import Trail
 from cloudct.physics.mixing import effective_albedo, scattering_log_derivative
@@ -44,13 +50,14 @@ from cloudct.recycling.path_terms import (
 @njit(cache=True, inline="always")
 def stored_local_estimate(
     grid, bank, cams, beta, S, k, ix, iy, iz, weight, event_albedo, mode, image, residual,
-    gradient,
+    gradient, sun_end, sun_turn, sun_aim, sun_lobe,
 ):
     """:func:`~cloudct.mc.forward.local_estimate` of event record k from its stored camera
     connections ("connections" storage): the pixels, angles and 1 / (r^2 Omega) were kept,
     and the optical depth to the camera is the stored frozen part plus beta x length over
-    the stored crossings of variable voxels. Same modes, values and deposit order as
-    ``local_estimate`` (bitwise equal when every voxel is variable)."""
+    the stored crossings of variable voxels. Same modes, values, combined estimator's
+    weights and deposit order as ``local_estimate`` (bitwise equal when every voxel is
+    variable)."""
     ncols = cams.ncols
     nrows = cams.nrows
     weighted_sum = 0.0
@@ -67,6 +74,11 @@ def stored_local_estimate(
         for q in range(S.connection_crossing_start[c], S.connection_crossing_start[c + 1]):
             tau += beta[S.connection_voxel[q]] * S.connection_length[q]
         value = weight * angular * math.exp(-tau) * S.connection_factor[c]
+        if cams.mis_ratio > 0.0:
+            value *= combined_forward_weight(
+                cams, angular, math.exp(-tau) * S.connection_factor[c], sun_end, sun_turn,
+                sun_aim, sun_lobe,
+            )
         if mode == RENDER:
             add_to(image, view, row, col, value)
             continue
@@ -85,14 +97,19 @@ def stored_local_estimate(
 
 @njit(cache=True)
 def replay_path(
-    grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power, beta, S,
+    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, beta, S,
     p, use_crossings, mode, image, residual, gradient, trail, scratch,
 ):
     """Re-evaluate stored path ``p`` under ``grid`` (the current medium M_t).
 
     Event e (a SCATTER or GROUND record) sends local estimates with the weight
     r_e x (source power x effective albedos of M_t x ground albedos x roulette factors x
-    the stored aiming weights f / q), r_e the prefix correction factor. RENDER adds them
+    the stored aiming weights f / q), r_e the prefix correction factor, and with
+    ``cams.mis_ratio`` > 0 each estimate's weight w_f of the combined estimator
+    (:mod:`cloudct.mc.combined`), computed from the path under M_t as
+    :func:`~cloudct.mc.forward.trace_photon` computes it (the sun end at the first vertex,
+    the aim factors f / q of the stored directions under M_t), so that it and a backward
+    path traced under M_t split each path's estimate into w_f + w_b = 1. RENDER adds them
     to ``image``. GRADIENT (Eq. 53) deposits each event's own score terms (connection
     segment, vertex at the camera angle) through :func:`local_estimate`, keeps S_e in
     ``scratch``, and after the path
@@ -107,34 +124,50 @@ def replay_path(
     nz = grid.z_edges.size - 1
     a = S.path_start[p]
     z = S.path_start[p + 1]
-    weight = power
+    weight = sun.power
     log_r = 0.0
     depth = 0
     total = 0.0
     inv_survival = 1.0 / rr_survival
+    combined = cams.mis_ratio > 0.0
+    sun_end = 0.0  # the combined estimator's path terms, as in trace_photon
+    sun_turn = -1.0
+    aim_product = 1.0
+    back_aims = 1.0
     for k in range(a + 1, z):
         kind = S.kind[k]
         log_r += segment_term(grid, beta, S, k, use_crossings, periodic) - S.seg_ref[k]
         if kind == ESCAPE:
             break
         ix, iy, iz = decode_voxel(S.voxel[k], ny, nz)
+        px, py, pz = S.position[0, k], S.position[1, k], S.position[2, k]
+        vx, vy, vz = S.direction[0, k], S.direction[1, k], S.direction[2, k]
+        sun_lobe = -1.0
+        if combined and depth == 0:
+            sun_end = sun_transmittance(grid, sun, periodic, px, py, pz, ix, iy, iz)
         if kind == GROUND:
             event_albedo = ground_albedo
+            if combined and depth == 0:
+                sun_turn = ground_albedo * -sun.direction[2] * INV_PI
         else:
             weight *= effective_albedo(grid, ix, iy, iz)
             event_albedo = -1.0
+            if combined:
+                sun_lobe = sun_lobe_at(grid, bank, sun, ix, iy, iz, vx, vy, vz, depth)
+        sun_aim = sun.aim_fraction if sun_lobe >= 0.0 else 0.0
         s_event = 0.0
         w = weight * math.exp(log_r)
         if w != 0.0 and S.connection_start.size > 1:
             s_event = stored_local_estimate(
                 grid, bank, cams, beta, S, k, ix, iy, iz, w, event_albedo, mode, image,
-                residual, gradient,
+                residual, gradient, sun_end * back_aims / aim_product, sun_turn, sun_aim,
+                sun_lobe,
             )
         elif w != 0.0:
             s_event = local_estimate(
-                grid, bank, cams, copies, periodic, S.position[0, k], S.position[1, k],
-                S.position[2, k], ix, iy, iz, S.direction[0, k], S.direction[1, k],
-                S.direction[2, k], w, event_albedo, mode, image, residual, gradient, trail,
+                grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, vx, vy, vz, w,
+                event_albedo, mode, image, residual, gradient, trail,
+                sun_end * back_aims / aim_product, sun_turn, sun_aim, sun_lobe,
             )
         if kind == GROUND:
             weight *= ground_albedo
@@ -145,6 +178,15 @@ def replay_path(
             if kind == SCATTER:
                 log_r += direction_term(grid, bank, S, k) - S.dir_ref[k]
                 weight *= S.aim_weight[k]
+                if combined:
+                    ux, uy, uz = S.direction[0, k + 1], S.direction[1, k + 1], \
+                        S.direction[2, k + 1]
+                    aim_product *= aimed_weight(grid, bank, cams, ix, iy, iz, px, py, pz, vx,
+                                                vy, vz, ux, uy, uz)
+                    sun_turn, back_aims = sun_side_after_turn(
+                        grid, bank, sun, ix, iy, iz, vx, vy, vz, ux, uy, uz, depth - 1,
+                        sun_turn, back_aims, sun_lobe,
+                    )
             if depth >= rr_depth:
                 weight *= inv_survival
     if mode == GRADIENT and total != 0.0:
@@ -174,7 +216,7 @@ def replay_path(
 
 @njit(cache=True)
 def _replay_batch(
-    b, grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power, beta, S,
+    b, grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, beta, S,
     use_crossings, per_batch, first, last, mode, image, residual, gradient, log_ratio,
     trail_capacity, max_records,
 ):
@@ -187,7 +229,7 @@ def _replay_batch(
     for k in range(first, last):
         j = b * per_batch + k
         depth, _, log_r = replay_path(
-            grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power,
+            grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
             beta, S, S.slot[j], use_crossings, mode, image, residual, gradient, trail, scratch,
         )
         log_ratio[j] = log_r
@@ -197,7 +239,7 @@ def _replay_batch(
 
 @njit(parallel=True, cache=True)
 def replay_render_batches(
-    grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power, beta, S,
+    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, beta, S,
     use_crossings, per_batch, first, last, images, log_ratio, events, max_records,
 ):
     """Re-evaluate the stored paths at photon-order positions ``b * per_batch + k`` for k in
@@ -210,7 +252,7 @@ def replay_render_batches(
     no_residual = np.zeros((1, 1, 1))
     for b in prange(images.shape[0]):
         events[b] += _replay_batch(
-            b, grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power,
+            b, grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
             beta, S, use_crossings, per_batch, first, last, RENDER, images[b], no_residual,
             no_residual, log_ratio, 0, max_records,
         )
@@ -218,7 +260,7 @@ def replay_render_batches(
 
 @njit(parallel=True, cache=True)
 def replay_gradient_batches(
-    grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power, beta, S,
+    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, beta, S,
     use_crossings, per_batch, first, last, residual, gradients, log_ratio, events,
     trail_capacity, max_records,
 ):
@@ -227,7 +269,7 @@ def replay_gradient_batches(
     no_image = np.zeros((1, 1, 1))
     for b in prange(gradients.shape[0]):
         events[b] += _replay_batch(
-            b, grid, bank, cams, copies, periodic, ground_albedo, rr_depth, rr_survival, power,
+            b, grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
             beta, S, use_crossings, per_batch, first, last, GRADIENT, no_image, residual,
             gradients[b], log_ratio, trail_capacity, max_records,
         )

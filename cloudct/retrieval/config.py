@@ -133,7 +133,8 @@ class RetrievalConfig:
     # and mode field (differentiated by the score function or DRT)
     image_method: str = "forward"  # the residual's images: "forward", or "combined" (forward
     # and camera paths weighted by multiple importance sampling, cloudct.mc.combined: without
-    # the fireflies of a full Mie peak; not with recycling, which replays forward paths)
+    # the fireflies of a full Mie peak; recycled: forward paths replayed, camera paths fresh;
+    # not with lbfgsb)
     phase_truncation: float | None = None  # degrees: the Mie phase functions' forward peak
     # cut flat for the retrieval's paths (cloudct.optics; 0: the full peak; None: as the
     # initial medium records)
@@ -156,10 +157,10 @@ class RetrievalConfig:
         if self.image_method not in IMAGE_METHODS:
             raise ValueError(f"image_method must be one of {IMAGE_METHODS}, got "
                              f"{self.image_method!r}")
-        if self.image_method != "forward" and (self.recycling != "none" or quasi_newton):
-            raise ValueError("image_method 'combined' renders fresh images every iteration: "
-                             "path recycling and lbfgsb replay stored forward paths (use "
-                             "recycling 'none' with adam or sgd, or image_method 'forward')")
+        if self.image_method != "forward" and quasi_newton:
+            raise ValueError("image_method 'combined' is not lbfgsb's: its windows replay "
+                             "stored forward paths alone (use adam or sgd, or image_method "
+                             "'forward')")
         if self.transmittance not in TRANSMITTANCE:
             raise ValueError(f"transmittance must be one of {TRANSMITTANCE}, got "
                              f"{self.transmittance!r}")
@@ -187,14 +188,17 @@ class RetrievalConfig:
             raise ValueError(f"pixel_sampling applies to the camera-side estimators "
                              f"({camera_side_names()}); no stage uses one")
         replay = [e.name for e in records if not e.replayable]
-        if replay and (quasi_newton or (self.recycling != "none" and self.recycle_gradient)):
+        if replay and self.recycling != "none" and self.recycle_gradient:
             raise ValueError(
-                "recycled gradients (a recycling policy without recycle_gradient=False) and "
-                "optimizer 'lbfgsb' replay stored forward paths, which the estimator "
-                f"{replay[0]!r} does not record: use "
+                "recycled gradients (a recycling policy without recycle_gradient=False) "
+                f"replay stored forward paths, which the estimator {replay[0]!r} does not "
+                "record: use "
                 f"{' or '.join(repr(e.name) for e in ESTIMATORS.values() if e.replayable)} "
                 "at every stage"
             )
+        if quasi_newton and set(self.estimator) != {"score"}:
+            raise ValueError("optimizer 'lbfgsb' replays stored forward paths by the path "
+                             "score function: use the estimator 'score' at every stage")
         if model and (any("gamma" not in e.transmittances for e in records) or quasi_newton
                       or self.recycling != "none"):
             able = " or ".join(repr(e.name) for e in ESTIMATORS.values()
@@ -309,9 +313,10 @@ OPTICS_TRUNCATION = {"mie": 3.0}
 #: sampling) has 5.9x the score function's gradient precision per second (sample matching's
 #: gradient is mostly noise), and with its images too the single cloud's 15-minute retrieval
 #: reaches epsilon 0.588 against 0.656 with the score function and forward images
-#: (docs/benchmarks.md, "Mie optics"). Where stored paths are replayed (recycling,
-#: lbfgsb), or a non-exponential transmittance is differentiated, the score function and
-#: forward images, which those take. With the peak cut the defaults of HG optics hold.
+#: (docs/benchmarks.md, "Mie optics"); path recycling replays its forward half. Where
+#: lbfgsb replays stored paths, or a non-exponential transmittance is differentiated, the
+#: score function and forward images, which those take. With the peak cut the defaults of
+#: HG optics hold.
 OPTICS_ESTIMATOR = {"mie": "combined"}
 OPTICS_IMAGE_METHOD = {"mie": "combined"}
 
@@ -322,10 +327,10 @@ def settings_for_optics(settings: dict, optics: str, recorded_truncation: float 
     full peak): with :data:`OPTICS_TRUNCATION`'s cut where they name no ``phase_truncation``
     and the medium records none, then, where the peak stays full, with
     :data:`OPTICS_ESTIMATOR`'s estimator at every stage where they name neither an
-    estimator nor a pixel sampling (the score function where stored paths are replayed or
+    estimator nor a pixel sampling (the score function where lbfgsb replays stored paths or
     the transmittance is the medium's), and :data:`OPTICS_IMAGE_METHOD`'s images where
-    they name none and nothing is replayed; each default taken is said in one line of the
-    ``cloudct`` log."""
+    they name none and the optimizer is not lbfgsb; each default taken is said in one line
+    of the ``cloudct`` log."""
     log = logging.getLogger("cloudct")
     out = dict(settings)
     cut = out.get("phase_truncation")
@@ -339,11 +344,10 @@ def settings_for_optics(settings: dict, optics: str, recorded_truncation: float 
     if cut > 0.0:
         return out
     quasi_newton = out.get("optimizer") == "lbfgsb"
-    recycled = out.get("recycling", "none") != "none"
     name = OPTICS_ESTIMATOR.get(optics)
+    model = out.get("transmittance") == "medium"
     if name is not None and out.get("estimator") is None and out.get("pixel_sampling") is None:
-        if quasi_newton or (recycled and out.get("recycle_gradient", True)) \
-                or out.get("transmittance") == "medium":
+        if quasi_newton or model:
             name = "score"
         stages = len(out.get("stages", RetrievalConfig.stages))
         out["estimator"] = (name,) * stages
@@ -351,7 +355,7 @@ def settings_for_optics(settings: dict, optics: str, recorded_truncation: float 
                  "which sample matching's gradient is mostly noise (docs/benchmarks.md, "
                  "\"Mie optics\")", name, optics)
     method = OPTICS_IMAGE_METHOD.get(optics)
-    if method is not None and out.get("image_method") is None and not (recycled or quasi_newton):
+    if method is not None and out.get("image_method") is None and not quasi_newton:
         out["image_method"] = method
         log.info("image method %s: the medium has %s optics with the full forward peak, whose "
                  "forward images have fireflies (docs/benchmarks.md, \"Mie optics\")", method,

@@ -108,7 +108,8 @@ RUN_KEYS = {k.name: k for k in (
     _run_key("transmittance", str, "exponential, or medium: the measurements' transmittance "
              "model and mode field (estimator score or drt, no recycling)"),
     _run_key("image_method", str, "the residual's images: forward, or combined (forward and "
-             "camera paths by multiple importance sampling; no recycling)"),
+             "camera paths by multiple importance sampling; recycled: camera paths fresh; not "
+             "with lbfgsb)"),
     _run_key("phase_truncation", float, "degrees: Mie phase functions' forward peak cut flat "
              "for the retrieval's paths; 0 keeps it (unset: as the initial medium records; a "
              "Mie medium that records none: 3)", 3.0),

@@ -392,7 +392,9 @@ class Retrieval:
             settings = dict(
                 photons=photons, gradient_photons=gradient_photons,
                 policy=config.policy(), variable=self.mask, memory_budget=budget,
-                seed=self._seed(7919 * (s.stage + 1)),
+                seed=self._seed(7919 * (s.stage + 1)), image_method=config.image_method,
+                gradient_estimator="combined" if config.estimator[s.stage] == "combined"
+                else "score",
             )
             if self.client is None:
                 from cloudct.recycling.recycler import Recycler
