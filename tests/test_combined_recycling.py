@@ -113,12 +113,8 @@ def test_combined_recycler_agrees_with_the_fresh_combined_estimator():
 
 
 def test_combined_recycling_refusals():
-    from cloudct.distributed.recycling import DistributedRecycler
-
     scene = SCENES["open"][1]()
     with pytest.raises(ValueError, match="image_method"):
         Recycler(scene, photons=100, image_method="backward")
     with pytest.raises(ValueError, match="gradient_estimator"):
         Recycler(scene, photons=100, gradient_estimator="sm")
-    with pytest.raises(ValueError, match="one process"):
-        DistributedRecycler(scene, photons=100, image_method="combined")

@@ -149,16 +149,21 @@ def test_camera_side_gradients_equal_the_single_process_ones_bitwise(client, est
         assert 0 < extra < 100 * out[2]["tasks"]
 
 
-def test_recycled_evaluations_equal_the_single_process_ones_and_paths_stay(client):
+@pytest.mark.parametrize("methods", [{}, {"image_method": "combined",
+                                           "gradient_estimator": "combined"}],
+                         ids=["forward", "combined"])
+def test_recycled_evaluations_equal_the_single_process_ones_and_paths_stay(client, methods):
+    """Also with the combined estimator: the workers replay the forward half with its
+    weights, the camera paths are traced here, the same as the single process's."""
     medium, scene = gradient_medium(), gradient_scene()
     w = weights_for(scene)
 
     def residual(images):
         return w * images.radiance.values
 
-    local = Recycler(scene, photons=3_200, policy=FixedPeriod(2), seed=3)
+    local = Recycler(scene, photons=3_200, policy=FixedPeriod(2), seed=3, **methods)
     remote = DistributedRecycler(scene, client=client, photons=3_200, policy=FixedPeriod(2),
-                                 seed=3)
+                                 seed=3, **methods)
     placements = []
     for t in range(3):
         m = scaled(medium, 1.0 + 0.03 * t)

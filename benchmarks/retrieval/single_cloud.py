@@ -21,7 +21,7 @@ Usage::
 
     python -m benchmarks retrieval.single_cloud --minutes 60 [--recycling none|fixed|adaptive]
         [--photons 100000] [--step 2.0] [--voxel-blocks 4 2 1] [--output FILE.json]
-        [--medium-output FILE.nc] [--start FILE.nc]
+        [--medium-output FILE.nc] [--start FILE.nc] [--truth FILE.nc] [--assume FILE.nc]
 """
 
 from __future__ import annotations
@@ -148,6 +148,11 @@ def main() -> None:
                         help="the true medium (netCDF, e.g. from benchmarks/scenes.py; "
                              "default: the bundled single cloud), seen by the nine cameras "
                              "around its box")
+    parser.add_argument("--assume", default=None,
+                        help="a medium netCDF whose cloud optics the retrieval assumes (e.g. "
+                             "the truth with HG optics, benchmarks/scenes.py): the carved "
+                             "start takes its optics, the settings its defaults; default: the "
+                             "truth's optics")
     parser.add_argument("--start", default=None,
                         help="start from this medium netCDF (e.g. a --medium-output; its "
                              "cloud_mask is the hull) instead of the carved hull")
@@ -161,16 +166,17 @@ def main() -> None:
     )
     synth_s = time.perf_counter() - t0
     carving_s = None
+    assumed = truth if args.assume is None else load_medium(args.assume)
     if args.start is None:
         t0 = time.perf_counter()
-        initial = initial_medium(carve(measurements, truth, profile=args.profile), truth)
+        initial = initial_medium(carve(measurements, assumed, profile=args.profile), assumed)
         mask, carving_s = None, time.perf_counter() - t0
     else:
         start = xr.load_dataset(args.start)
-        initial = truth.copy(deep=True)
+        initial = assumed.copy(deep=True)
         initial["cloud_extinction"].values = start["cloud_extinction"].values.copy()
         mask = start["cloud_mask"].values.astype(bool)
-    config = run_config(args, optics_name(truth))
+    config = run_config(args, optics_name(assumed))
     result = {
         **run_header(args),
         "measurement_photons": args.measurement_photons,
@@ -178,6 +184,7 @@ def main() -> None:
         "measurement_seconds": synth_s,
         "carving_seconds": carving_s,
         "start": args.start or f"carved hull, {args.profile} profile",
+        "assumed_optics": optics_name(assumed),
         "config": {k: v for k, v in vars(config).items()},
     }
     run = Retrieval(measurements, initial, config, mask=mask, truth=truth)

@@ -81,17 +81,18 @@ def part_log_weights(store: PathStore, medium: xr.Dataset) -> np.ndarray:
     return weight_summary(correction_log_weights(store, medium), store.batches)
 
 
-def part_replay(store: PathStore, medium: xr.Dataset, residual) -> tuple:
+def part_replay(store: PathStore, medium: xr.Dataset, residual, mis_ratio: float = 0.0) -> tuple:
     """Per-batch images (``residual`` None) or gradients of the part, batch means as
-    :func:`~cloudct.recycling.replay.replay_images`, with the per-batch summary of the
-    paths' log r and the events."""
+    :func:`~cloudct.recycling.replay.replay_images` (``mis_ratio`` > 0: the combined
+    estimator's forward half), with the per-batch summary of the paths' log r and the
+    events."""
     from cloudct.distributed.batches import _fault
 
     _fault("replay", store.info.get("first_batch", 0))
     if residual is None:
-        values, info = replay_images(store, medium)
+        values, info = replay_images(store, medium, mis_ratio=mis_ratio)
     else:
-        values, info = replay_batch_gradients(store, medium, residual)
+        values, info = replay_batch_gradients(store, medium, residual, mis_ratio=mis_ratio)
     return values, info["weight_summary"], info["events"], info["wall_time"]
 
 
@@ -243,11 +244,12 @@ class DistributedPathStore:
             raise DistributedError(f"{summary.shape[0]} of {self.batches} batches came back")
         return summary, {"bytes_to_workers": sent, "bytes_from_workers": received}
 
-    def replay(self, medium: xr.Dataset, residual: np.ndarray | None = None):
+    def replay(self, medium: xr.Dataset, residual: np.ndarray | None = None,
+               mis_ratio: float = 0.0):
         """Per-batch images (float64[batches, view, row, col], ``residual`` None) or
         per-batch gradients (float64[batches, x, y, z]), batch means as in
-        :mod:`cloudct.recycling.replay`, and info (events, ess, ess_fraction,
-        weight_summary, wall_time, bytes moved)."""
+        :mod:`cloudct.recycling.replay` (and its ``mis_ratio``), and info (events, ess,
+        ess_fraction, weight_summary, wall_time, bytes moved)."""
         t0 = time.perf_counter()
         check_same_grid(self, cell_edges(medium))
         ex = self.executor
@@ -258,7 +260,7 @@ class DistributedPathStore:
             residual_future, more = ex.share(residual)
             sent += more
         results, received = self._run(
-            part_replay, medium_future, residual_future,
+            part_replay, medium_future, residual_future, float(mis_ratio),
             desc="recycled-images" if residual is None else "recycled-gradient",
         )
         for (_, n, _), r in zip(self.parts, results, strict=True):
@@ -278,18 +280,19 @@ class DistributedPathStore:
             "sorted": self.sorted,
             "seed": self.seed,
             "weight_summary": summary,
+            "mis_ratio": float(mis_ratio),
             "bytes_to_workers": sent,
             "bytes_from_workers": received,
         }
         return values, info
 
-    def replay_images(self, medium: xr.Dataset):
+    def replay_images(self, medium: xr.Dataset, mis_ratio: float = 0.0):
         """As :func:`cloudct.recycling.replay.replay_images`."""
-        return self.replay(medium)
+        return self.replay(medium, None, mis_ratio)
 
-    def replay_gradient(self, medium: xr.Dataset, residual: np.ndarray):
+    def replay_gradient(self, medium: xr.Dataset, residual: np.ndarray, mis_ratio: float = 0.0):
         """As :func:`cloudct.recycling.replay.replay_gradient`: ``(mean, std_error, info)``."""
-        values, info = self.replay(medium, residual)
+        values, info = self.replay(medium, residual, mis_ratio)
         return (
             values.mean(axis=0),
             values.std(axis=0, ddof=1) / math.sqrt(self.batches),
@@ -306,11 +309,6 @@ class DistributedRecycler(Recycler):
 
     def __init__(self, scene: Scene, *, client=None, **kwargs) -> None:
         super().__init__(scene, **kwargs)
-        if (self.image_method, self.gradient_estimator) != ("forward", "score"):
-            raise ValueError("the combined estimator's recycling runs in one process: its "
-                             "backward half is traced here and its stores' replays take a "
-                             "weight the workers' replays do not (use Recycler, or the "
-                             "forward images and score-function gradient)")
         self.executor = executor(client)
         self._moved = [0, 0]  # bytes to and from the workers in the current evaluation
 
@@ -337,13 +335,17 @@ class DistributedRecycler(Recycler):
         self._count(moved)
         return log_r
 
-    def _replay_images(self, store, medium: xr.Dataset) -> tuple[np.ndarray, dict]:
-        values, info = store.replay_images(medium)
+    def _replay_images(
+        self, store, medium: xr.Dataset, mis_ratio: float = 0.0
+    ) -> tuple[np.ndarray, dict]:
+        values, info = store.replay_images(medium, mis_ratio)
         self._count(info)
         return values, info
 
-    def _replay_gradient(self, store, medium: xr.Dataset, residual: np.ndarray) -> tuple:
-        mean, std_error, info = store.replay_gradient(medium, residual)
+    def _replay_gradient(
+        self, store, medium: xr.Dataset, residual: np.ndarray, mis_ratio: float = 0.0
+    ) -> tuple:
+        mean, std_error, info = store.replay_gradient(medium, residual, mis_ratio)
         self._count(info)
         return mean, std_error, info
 

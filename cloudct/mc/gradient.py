@@ -424,8 +424,7 @@ ESTIMATORS: dict[str, GradientEstimator] = {
         GradientEstimator("combined", "path score function (forward photons and camera "
                           "paths, MIS-weighted)", camera_side=False, replayable=True,
                           transmittances=("exponential",), run=_combined_run,
-                          recycled="forward photons replayed, camera paths fresh (this "
-                          "process)"),
+                          recycled="forward photons replayed, camera paths fresh"),
     )
 }
 

@@ -316,8 +316,8 @@ class Recycler:
         batches, run = backward_score_batches(k, residual, per_pixel, sampling=sampling,
                                               progress=self.progress)
         batches = per_cloud_extinction(k, batches)
-        if store.variable is not None:
-            batches[:, ~store.variable] = 0.0  # as the replay's (no crossings there)
+        if self.variable is not None:
+            batches[:, ~self.variable] = 0.0  # the voxels that may change, as the stores
         # independent halves: their variances add
         return mean + batches.mean(axis=0), np.hypot(
             std_error, batches.std(axis=0, ddof=1) / math.sqrt(self.batches)

@@ -130,9 +130,9 @@ STAGE_KEYS = {k.name: k for k in (
     Key("voxel_block", "voxel_blocks", int, "voxels tied in blocks of this size"),
     Key("smoothing", "gradient_smoothing", float, "Gaussian sigma [voxels] of the "
         "gradient's smoothing inside the hull (unset: 1; 0 with lbfgsb)"),
-    Key("estimator", "estimator", str, "gradient estimator: score, drt or sm (unset: sm; "
-        "score where stored paths are replayed, the transmittance is the medium's or the "
-        "cloud optics are Mie)"),
+    Key("estimator", "estimator", str, "gradient estimator: score, drt, sm, backward-score "
+        "or combined (unset: sm; score where stored paths are replayed or the transmittance "
+        "is the medium's; combined for Mie optics with the full peak, except with lbfgsb)"),
 )}
 #: RetrievalConfig's per-stage field -> the ``[[stage]]`` key.
 STAGE_FIELDS = {k.field: name for name, k in STAGE_KEYS.items()}
