@@ -75,13 +75,13 @@ def test_combined_recycler_agrees_with_the_fresh_combined_estimator():
     medium, scene = make_medium(), make_scene()
     target = perturbed(medium)
     weights = weights_for(scene)
-    recycler = Recycler(scene, photons=200_000, batches=BATCHES, policy=FixedPeriod(100),
+    recycler = Recycler(scene, photons=120_000, batches=BATCHES, policy=FixedPeriod(100),
                         seed=3, image_method="combined", gradient_estimator="combined", **rr)
     recycler.resample(medium)
     ev = recycler.evaluate(target, residual=weights)
     assert ev.images.attrs["method"] == "combined-recycled"
     assert 0.2 < ev.info["ess_images"] < 1.0
-    fresh, _ = render_batches(target, scene, photons=200_000, method="combined", seed=9,
+    fresh, _ = render_batches(target, scene, photons=120_000, method="combined", seed=9,
                               batches=BATCHES, progress=False, **rr)
     fresh_se = fresh.std(axis=0, ddof=1) / np.sqrt(BATCHES)
     recycled, se = ev.images["radiance"].values, ev.images["radiance_std_error"].values
@@ -103,7 +103,7 @@ def test_combined_recycler_agrees_with_the_fresh_combined_estimator():
                           fresh.mean(axis=0)[lit], BATCHES, reference_error=fresh_se[lit],
                           label="unweighted replay + backward half")
 
-    g, ge, _ = combined_gradient(target, scene, weights, photons=200_000, seed=10,
+    g, ge, _ = combined_gradient(target, scene, weights, photons=120_000, seed=10,
                                  batches=BATCHES, progress=False, **rr)
     live = (ev.gradient_std_error > 0) & (ge > 0)
     assert live.sum() > 20

@@ -332,8 +332,9 @@ def test_tiny_retrieval_with_recycling(measurements):
 
 def test_tiny_retrieval_recycling_the_combined_estimator(measurements, monkeypatch):
     """Recycling with the combined estimator's images and gradient: the recycler replays
-    the forward half and traces the backward half fresh (one Recycler per stage, told the
-    method and estimator); epsilon falls as with forward paths alone."""
+    the forward half and traces the backward half fresh (a Recycler told the method and
+    the estimator); resampled every 5th iteration, epsilon falls. (The estimator's
+    agreement with fresh paths: tests/test_combined_recycling.py.)"""
     import cloudct.recycling.recycler as recycler
 
     made = []
@@ -345,15 +346,15 @@ def test_tiny_retrieval_recycling_the_combined_estimator(measurements, monkeypat
 
     monkeypatch.setattr(recycler, "Recycler", Noted)
     truth = gradient_medium()
-    config = RetrievalConfig(iterations=40, recycling="fixed", period=5, **CONFIG,
+    config = RetrievalConfig(iterations=12, recycling="fixed", period=5, **CONFIG,
                              estimator=("combined", "combined"), image_method="combined")
     result = Retrieval(measurements, initial_guess(), config, truth=truth).run(progress=False)
     assert made and set(made) == {("combined", "combined")}
     resampled = result["log_resampled"].values
-    assert 8 <= resampled.sum() <= 10
+    assert 3 <= resampled.sum() <= 4  # every 5th iteration, and at a new stage
     eps0, _ = epsilon_delta(truth["cloud_extinction"].values,
                             initial_guess()["cloud_extinction"].values)
-    assert result["log_epsilon"].values[-5:].mean() < 0.75 * eps0
+    assert result["log_epsilon"].values[-3:].mean() < 0.9 * eps0
 
 
 def test_tiny_retrieval_recycling_only_the_images(measurements):
