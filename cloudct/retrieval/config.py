@@ -48,14 +48,15 @@ class RetrievalConfig:
     gradient by sample matching from pixels drawn in proportion to |residual|
     (``estimator``, ``pixel_sampling``: 100-400 times the score function's precision per
     second near the plateau; the score function where stored paths are replayed, which
-    only it can), the L1 prior at 0.01 /km^2 (``sparsity``, :meth:`Retrieval.l1_gradient`:
-    among media that fit the images about equally well, the least extinction; none with
-    L-BFGS-B), its weight falling with the gradient's noise (``sparsity_schedule``), the
-    noise schedule (:mod:`cloudct.retrieval.schedule`): when the loss's decrease is within
-    its Monte Carlo noise, 1.5x the photons up to 16x, then the step halved down to 1/16;
-    and the iterates' exponential moving average kept beside the last (``averaging``). The seed
-    paper's step of 2 /km with coarse-to-fine stages 4, 2, 1 walks away from the carved
-    start; a step of 1 /km makes the cloud field worse than its carved start.
+    only it and the combined estimator can), the L1 prior at 0.01 /km^2 (``sparsity``,
+    :meth:`Retrieval.l1_gradient`: among media that fit the images about equally well, the
+    least extinction; none with L-BFGS-B), its weight falling with the gradient's noise
+    (``sparsity_schedule``), the noise schedule (:mod:`cloudct.retrieval.schedule`): when
+    the loss's decrease is within its Monte Carlo noise, 1.5x the photons up to 16x, then
+    the step halved down to 1/16; and the iterates' exponential moving average kept beside
+    the last (``averaging``). The seed paper's step of 2 /km with coarse-to-fine stages 4,
+    2, 1 walks away from the carved start; a step of 1 /km makes the cloud field worse than
+    its carved start.
 
     ``photons="auto"`` (the default) traces as many gradient paths per iteration as fill
     ``iteration_seconds`` on the device the run is on (:mod:`cloudct.retrieval.
