@@ -109,7 +109,7 @@ def settings_drift(module, args: argparse.Namespace) -> str:
         return ""
     import json
 
-    from cloudct.cli.retrieve import OPTION_NAMES
+    from cloudct.cli.run_options import OPTION_NAMES
     from cloudct.retrieval.config_file import config_from_json
 
     result = json.loads(output.read_text())

@@ -6,6 +6,7 @@ as numbers and as a figure."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -18,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 import xarray as xr
+
+from cloudct.retrieval.state import SHELL_PARTS
 
 #: The benchmarks package, its result and work folders, and the repository.
 ROOT = Path(__file__).resolve().parent
@@ -116,13 +119,20 @@ def scalar_markdown(result: dict) -> str:
     return "\n".join(markdown_table(["quantity", "value"], rows)) + "\n" if rows else ""
 
 
+def _as_json(value):
+    """A setting's JSON form where json has none (a dataclass: a prior term)."""
+    if dataclasses.is_dataclass(value):
+        return dataclasses.asdict(value)
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
+
+
 def write_result(result: dict, output: str | Path,
                  markdown: Callable[[dict], str] = scalar_markdown) -> None:
     """``output``.json (the whole result) and ``output``.md (the run header, then the table
     ``markdown`` makes of the result, also printed)."""
     out = Path(output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(result, indent=1) + "\n")
+    out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=_as_json) + "\n")
     table = markdown(result)
     out.with_suffix(".md").write_text("\n".join(header_markdown(result)) + "\n\n" + table)
     print(table)
@@ -142,25 +152,31 @@ def run_command(argv: list[str], log: list[dict]) -> None:
         raise SystemExit(f"cloudct {argv[0]} failed with status {status}")
 
 
-def error_over_time(result: str | Path, minutes=(5, 15, 30, 60)) -> dict:
+#: The retrieval log's columns of epsilon's parts outside the true cloud and by optical
+#: distance from its lit and viewed boundary (cloudct.retrieval.state.SHELL_PARTS).
+SHELL_LOG = [f"epsilon_{part.replace(' ', '_')}" for part in SHELL_PARTS]
+
+
+def error_over_time(result: str | Path, minutes=(5, 10, 15, 30, 60)) -> dict:
     """Iterations, epsilon and delta of a retrieval result file at each of ``minutes`` that
-    the run lasted (the last iteration done by then), and at its end."""
+    the run lasted (the last iteration done by then), and at its end, with epsilon's parts
+    outside the true cloud and by optical distance where the log has them."""
     ds = xr.load_dataset(result)
     seconds = ds["log_seconds"].values
+    parts = [f"log_{name}" for name in ("epsilon", "delta", *SHELL_LOG) if f"log_{name}" in ds]
+
+    def at(i: int) -> dict:
+        return {name.removeprefix("log_"): float(ds[name].values[i]) for name in parts}
+
     marks = {}
     for m in minutes:
         if 60 * m > 1.01 * seconds[-1]:
             break
         done = np.flatnonzero(seconds <= 60 * m)
         if done.size:
-            i = done[-1]
-            marks[f"{m:g} min"] = {"iteration": int(i + 1),
-                                   "epsilon": float(ds["log_epsilon"].values[i]),
-                                   "delta": float(ds["log_delta"].values[i])}
+            marks[f"{m:g} min"] = {"iteration": int(done[-1] + 1), **at(done[-1])}
     return {"iterations": int(seconds.size), "seconds": float(seconds[-1]),
-            "final": {"epsilon": float(ds["log_epsilon"].values[-1]),
-                      "delta": float(ds["log_delta"].values[-1])},
-            "over_time": marks}
+            "final": at(-1), "over_time": marks}
 
 
 def error_markdown(result: dict) -> str:
@@ -201,12 +217,16 @@ def loss_at_the_truth(media: dict, measurements: xr.Dataset, photons: int) -> di
 
 
 def over_time_markdown(result: dict) -> str:
-    """Epsilon and delta at each mark of :func:`error_over_time`'s result, as a table."""
-    rows = [[mark, str(v["iteration"]), f"{v['epsilon']:.3f}", f"{v['delta']:+.3f}"]
-            for mark, v in result["over_time"].items()]
-    rows.append(["end", str(result["iterations"]), f"{result['final']['epsilon']:.3f}",
-                 f"{result['final']['delta']:+.3f}"])
-    return "\n".join(markdown_table(["time", "iteration", "epsilon", "delta"], rows)) + "\n"
+    """Epsilon and delta at each mark of :func:`error_over_time`'s result, with epsilon's
+    parts outside the true cloud and by optical distance where known, as a table."""
+    marks = [*result["over_time"].items(), ("end", {"iteration": result["iterations"],
+                                                    **result["final"]})]
+    shells = [name for name in SHELL_LOG if name in result["final"]]
+    rows = [[mark, str(v["iteration"]), f"{v['epsilon']:.3f}", f"{v['delta']:+.3f}",
+             *(f"{v[name]:.3f}" for name in shells)] for mark, v in marks]
+    header = ["time", "iteration", "epsilon", "delta",
+              *(name.removeprefix("epsilon_").replace("_", " ") for name in shells)]
+    return "\n".join(markdown_table(header, rows)) + "\n"
 
 
 def error_figure(runs: dict[str, Path], path: Path, title: str,

@@ -272,6 +272,24 @@ def test_excess_profile_starts_closer_to_a_structured_cloud():
     assert eps["excess"] < 2.0 / 3.0 * eps["constant"]
 
 
+def test_adiabatic_profile_rises_as_an_adiabatic_cloud_above_the_hulls_base(
+        blob, blob_measurements):
+    """The adiabatic profile is the excess profile times (z - z_base)^(2/3), z_base the
+    lower edge of the hull's lowest level: mean 1 in the hull, 0 outside."""
+    excess = carve(blob_measurements, blob, fit_photons=None)
+    adiabatic = carve(blob_measurements, blob, profile="adiabatic", fit_photons=None)
+    hull = excess.hull.values.astype(bool)
+    assert np.array_equal(adiabatic.hull.values, excess.hull.values)
+    assert adiabatic.attrs["profile"] == "adiabatic"
+    z_edges = cell_edges(blob)[2]
+    base = z_edges[np.nonzero(hull.any(axis=(0, 1)))[0][0]]
+    height = blob.z.values - base
+    expected = excess.extinction_profile.values * np.clip(height, 0.0, None) ** (2 / 3)
+    expected /= expected[hull].mean()
+    np.testing.assert_allclose(adiabatic.extinction_profile.values, expected, rtol=1e-12)
+    assert np.all(adiabatic.extinction_profile.values[~hull] == 0.0)
+
+
 def test_masked_pixels_do_not_carve(blob, blob_measurements):
     masked = blob_measurements.copy(deep=True)
     masked["radiance"][4] = np.nan  # a whole view lost
@@ -281,7 +299,7 @@ def test_masked_pixels_do_not_carve(blob, blob_measurements):
     np.testing.assert_array_equal(carved.hull.values, eight_views.hull.values)
 
 
-@pytest.mark.parametrize("profile", ["excess", "constant"])
+@pytest.mark.parametrize("profile", ["excess", "constant", "adiabatic"])
 def test_fitted_extinction_reproduces_the_brightness(blob, blob_measurements, profile):
     """The hull filled in the profile at the fitted mean extinction renders (independent
     seed) as bright as the measurements, within 5 %."""

@@ -57,7 +57,7 @@ def test_tiny_periodic_retrieval_lowers_epsilon():
     truth = field["cloud_extinction"].values
     eps0, _ = epsilon_delta(truth, start["cloud_extinction"].values)
     config = RetrievalConfig(iterations=12, photons=10_000, stages=(1,), voxel_blocks=(2,),
-                             seed=0, step=1.0, sparsity=0.0, image_photons=(4.0,))
+                             seed=0, step=1.0, priors=(), image_photons=(4.0,))
     result = Retrieval(measured, start, config, truth=field).run(progress=False)
     eps = result["log_epsilon"].values
     print(f"hull {int(carved['hull'].sum())} voxels (blobs {int((truth > 0).sum())}); "
@@ -101,7 +101,7 @@ def test_cli_demo_on_the_cloud_field(tmp_path, capsys):
     assert main(["demo", "--write-config"]) == 0
     single = capsys.readouterr().out
     assert "iteration_seconds = 5.0" in single and "step = 0.5" in single
-    assert "# iteration_seconds = 20.0" in field and "# sparsity = " in field
+    assert "# iteration_seconds = 5.0" in field and "# [[prior]]" in field
     with pytest.raises(SystemExit) as refused:
         main(["demo", "--scene", "cumulus", "-o", str(tmp_path / "other")])
     assert refused.value.code == 2

@@ -16,7 +16,8 @@ from test_retrieval import initial_guess
 from test_score_gradient import gradient_medium, gradient_scene
 
 from cloudct.cli import build_parser, main
-from cloudct.cli.retrieve import DEMO_CONFIG, config_from_options
+from cloudct.cli.retrieve import DEMO_CONFIG
+from cloudct.cli.run_options import config_from_options
 from cloudct.mc.render import render
 from cloudct.measurements import load_measurements, save_measurements
 from cloudct.medium import load_medium, save_medium
@@ -30,6 +31,7 @@ from cloudct.retrieval.config_file import (
     parse_config,
 )
 from cloudct.retrieval.loop import Retrieval, RetrievalConfig
+from cloudct.retrieval.priors import Prior
 from cloudct.retrieval.report import write_report
 
 if sys.version_info >= (3, 11):
@@ -88,7 +90,7 @@ def run_toml(tmp_path) -> Path:
 
 def test_every_setting_has_a_key_of_the_file():
     fields = {f.name for f in dataclasses.fields(RetrievalConfig)}
-    assert set(RUN_KEYS) | set(STAGE_FIELDS) == fields
+    assert set(RUN_KEYS) | set(STAGE_FIELDS) | {"priors"} == fields  # [[prior]] rows
     assert not set(RUN_KEYS) & set(STAGE_FIELDS)
 
 
@@ -151,6 +153,34 @@ def load_config_text(text: str, tmp_path: Path) -> RetrievalConfig:
     return RetrievalConfig(**load_config(path))
 
 
+def test_prior_rows_and_the_command_line_give_the_same_terms(tmp_path, capsys):
+    text = ('[[prior]]\nterm = "monotonic"\nweight = 0.3\n\n[[prior]]\nterm = "smoothness"'
+            '\nweight = 0.1\nschedule = "fixed"\nvertical = 0.5\n')
+    path = tmp_path / "run.toml"
+    path.write_text(text)
+    terms = (Prior("monotonic", 0.3), Prior("smoothness", 0.1, "fixed", {"vertical": 0.5}))
+    assert settings_of("retrieve", "m.nc", "--config", str(path)).priors == terms
+    argv = ["retrieve", "m.nc", "--prior", "monotonic=0.3",
+            "smoothness=0.1,schedule=fixed,vertical=0.5"]
+    assert settings_of(*argv).priors == terms
+    assert settings_of("retrieve", "m.nc", "--prior", "none").priors == ()
+    path.write_text("prior = []\n")
+    assert settings_of("retrieve", "m.nc", "--config", str(path)).priors == ()
+    # the settings of the runs before the terms: the L1 term alone, from a file or options
+    legacy = (Prior("l1", 0.005, "fixed"),)
+    path.write_text('sparsity = 0.005\nsparsity_schedule = "fixed"\n')
+    assert settings_of("retrieve", "m.nc", "--config", str(path)).priors == legacy
+    assert settings_of("retrieve", "m.nc", "--sparsity", "0.005", "--sparsity-schedule",
+                       "fixed").priors == legacy
+    assert settings_of("retrieve", "m.nc", "--sparsity", "0").priors == ()
+    assert main(["retrieve", "m.nc", "--prior", "l1=1", "--sparsity", "0.1"]) == 2
+    assert "--sparsity and --sparsity-schedule give the L1 term alone" in \
+        capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        settings_of("retrieve", "m.nc", "--prior", "tv=1")
+    assert "prior term must be one of" in capsys.readouterr().err
+
+
 def test_a_configuration_round_trips_through_its_text():
     configs = [
         RetrievalConfig(),
@@ -158,6 +188,9 @@ def test_a_configuration_round_trips_through_its_text():
                         recycling_memory=1e-6, time_limit=1.0 / 3.0),
         RetrievalConfig(recycling="adaptive", recycle_gradient=False, estimator=("drt",),
                         pixel_sampling="uniform", averaging="ema", averaging_decay=0.95),
+        RetrievalConfig(priors=(Prior("monotonic", 0.25, "fixed"),
+                                Prior("smoothness", 1.0 / 3.0, options={"vertical": 0.5}))),
+        RetrievalConfig(priors=()),
     ]
     for config in configs:
         for comments in (False, True):
@@ -179,9 +212,9 @@ BAD_FILES = {
     "unknown stage key": ("[[stage]]\npixel_block = 2\nsmooth = 1.0\n",
                           "run.toml: [[stage]] 1: unknown key 'smooth' (did you mean "
                           "'smoothing'?)"),
-    "run-wide key in a row": ("[[stage]]\npixel_block = 2\nsparsity = 0.01\n",
-                              "run.toml: [[stage]] 1: unknown key 'sparsity'; sparsity is a "
-                              "run-wide key: write it above the first [[stage]]"),
+    "run-wide key in a row": ("[[stage]]\npixel_block = 2\nstep_decay = 0.5\n",
+                              "run.toml: [[stage]] 1: unknown key 'step_decay'; step_decay is "
+                              "a run-wide key: write it above the first [[stage]]"),
     "wrong stage type": ('[[stage]]\npixel_block = "2"\n',
                          'run.toml: [[stage]] 1: pixel_block must be an integer, got "2"'),
     "bad stage value": ("[[stage]]\npixel_block = 2\nstep = 0.0\n",
@@ -192,6 +225,20 @@ BAD_FILES = {
     "a row without its pixel block": ("[[stage]]\npixel_block = 4\n\n[[stage]]\nstep = 2.0\n",
                                       "run.toml: [[stage]] 2 lacks pixel_block"),
     "stage not a table": ("stage = 2\n", "run.toml: stage must be [[stage]] tables"),
+    "unknown prior": ('[[prior]]\nterm = "tv"\nweight = 1.0\n',
+                      "run.toml: [[prior]] 1: prior term must be one of"),
+    "prior without weight": ('[[prior]]\nterm = "l1"\n',
+                             "run.toml: [[prior]] 1: lacks weight"),
+    "prior option of another term": ('[[prior]]\nterm = "l1"\nweight = 1.0\nhuber = 2.0\n',
+                                     "run.toml: [[prior]] 1: prior l1: unknown option 'huber'"),
+    "prior option not a number": ('[[prior]]\nterm = "smoothness"\nweight = 1.0\n'
+                                  'vertical = "high"\n', 'run.toml: [[prior]] 1: vertical '
+                                  'must be a number, got "high"'),
+    "a term twice": ('[[prior]]\nterm = "l1"\nweight = 1.0\n[[prior]]\nterm = "l1"\n'
+                     'weight = 2.0\n', "run.toml: priors name a term twice"),
+    "the old key and rows": ('sparsity = 0.01\n[[prior]]\nterm = "l1"\nweight = 1.0\n',
+                             "run.toml: sparsity (the L1 term's settings before [[prior]] "
+                             "rows) and [[prior]] rows: give the rows alone"),
     "not TOML": ("photons = = 3\n", "run.toml is not a TOML file: Invalid value"),
     "not text": (b"\xff\xfe\x00binary", "run.toml is not a TOML file: it is not UTF-8 text"),
 }

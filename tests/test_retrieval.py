@@ -22,6 +22,7 @@ from cloudct.retrieval.optimizers import (
     project,
     smoothed_gradient,
 )
+from cloudct.retrieval.priors import PRIORS, Prior, PriorGrid
 from cloudct.retrieval.report import write_report
 from cloudct.retrieval.schedule import advance
 from cloudct.retrieval.state import LOG_FIELDS
@@ -83,8 +84,7 @@ def test_defaults_and_per_stage_settings_left_at_none():
         "adam", 0.5, (2,), 0.5)
     assert (default.stage_photons, default.gradient_smoothing, default.image_photons) == (
         (1.0,), (1.0,), (2.0,))
-    assert (default.sparsity, default.sparsity_schedule, default.averaging) == (
-        0.01, "noise", "ema")
+    assert default.priors == (Prior("l1", 0.01, "noise"),) and default.averaging == "ema"
     assert (default.schedule, default.plateau, default.photons) == ("noise", "photons", "auto")
     three = RetrievalConfig(stages=(4, 2, 1))
     assert three.stage_photons == three.stage_steps == (1.0, 1.0, 1.0)
@@ -92,7 +92,7 @@ def test_defaults_and_per_stage_settings_left_at_none():
     assert three.voxel_blocks == (1, 1, 1)
     quasi_newton = RetrievalConfig(optimizer="lbfgsb", stages=(2, 1))
     assert quasi_newton.gradient_smoothing == (0.0, 0.0)
-    assert quasi_newton.image_photons == (1.0, 1.0) and quasi_newton.sparsity == 0.0
+    assert quasi_newton.image_photons == (1.0, 1.0) and quasi_newton.priors == ()
 
 
 def test_smoothed_gradient_is_a_symmetric_positive_preconditioner():
@@ -173,7 +173,7 @@ def initial_guess():
 # the tiny retrievals' settings: those the tests were calibrated on (no prior, 4x image
 # photons, the step halved at a 2 % plateau), not today's defaults
 CONFIG = dict(photons=40_000, step=1.0, stages=(2, 1), stage_photons=(0.5, 1.0),
-              image_photons=(4.0, 4.0), sparsity=0.0, schedule="threshold",
+              image_photons=(4.0, 4.0), priors=(), schedule="threshold",
               saturation_window=3, plateau="step", checkpoint_every=3)
 
 
@@ -260,10 +260,12 @@ def test_residual_images_take_their_own_photon_count(measurements, monkeypatch):
         RetrievalConfig(stages=(2, 1), stage_photons=(1.0, 1.0), image_photons=(1.0,))
 
 
-def test_sparsity_adds_the_l1_prior_gradient(measurements, monkeypatch):
-    """With the data gradient set to zero, one SGD step moves every masked voxel down by
-    step x sparsity x L_empty x V (the L1 prior's gradient, V the voxel volume, L_empty the
-    loss of a dark medium at the stage's pixels) and leaves the rest at zero."""
+@pytest.mark.parametrize("term", sorted(PRIORS))
+def test_each_prior_term_enters_the_step_with_its_weight(measurements, monkeypatch, term):
+    """With the data gradient set to zero, one SGD step moves every masked voxel by -step x
+    weight x L_empty x dPhi/dbeta (L_empty the loss of a dark medium at the stage's pixels),
+    projected onto beta >= 0, leaves the rest at zero, and logs weight x L_empty x Phi; for
+    the L1 term dPhi/dbeta is the voxel volume."""
     import cloudct.retrieval.loop as loop
 
     real = loop.loss_and_gradient
@@ -274,22 +276,28 @@ def test_sparsity_adds_the_l1_prior_gradient(measurements, monkeypatch):
         return result
 
     monkeypatch.setattr(loop, "loss_and_gradient", data_gradient_zero)
+    prior = Prior(term, 0.2)
     config = RetrievalConfig(iterations=0, photons=1_000, optimizer="sgd", step=50.0,
                              stages=(2,), gradient_smoothing=(0.0,), image_photons=(1.0,),
-                             sparsity=0.2)
+                             priors=(prior,))
     start = initial_guess()
+    beta = start["cloud_extinction"].values
+    beta = np.where(beta > 0, beta * np.linspace(0.5, 1.5, beta.size).reshape(beta.shape), 0.0)
+    start["cloud_extinction"].values = beta
     run = Retrieval(measurements, start, config)
-    run.step()
+    row = run.step()
     coarse = coarse_measurements(measurements, 2)["radiance"].values
     dark_loss = 0.5 * np.sum(coarse**2)
-    x = start["x"].values
-    volume = (x[1] - x[0]) ** 3  # the test grid is cubic
-    moved = start["cloud_extinction"].values - run.state.extinction
-    hull = start["cloud_extinction"].values > 0
-    np.testing.assert_allclose(moved[hull], 50.0 * 0.2 * dark_loss * volume, rtol=1e-9)
-    assert np.all(run.state.extinction[~hull] == 0.0)
-    with pytest.raises(ValueError, match="sparsity must be >= 0"):
-        RetrievalConfig(sparsity=-1.0)
+    phi, d_phi = prior.value_and_gradient(beta, PriorGrid.of(start))
+    hull = beta > 0
+    expected = np.where(hull, np.maximum(beta - 50.0 * 0.2 * dark_loss * d_phi, 0.0), 0.0)
+    np.testing.assert_allclose(run.state.extinction, expected, rtol=1e-9, atol=1e-12)
+    assert row["prior"] == pytest.approx(0.2 * dark_loss * phi, rel=1e-12)
+    if term == "l1":
+        x = start["x"].values
+        np.testing.assert_allclose(d_phi, (x[1] - x[0]) ** 3)  # the test grid is cubic
+    with pytest.raises(ValueError, match="weight must be >= 0"):
+        RetrievalConfig(priors=(Prior(term, -1.0),))
 
 
 def test_checkpoint_from_another_run_is_refused(tmp_path, measurements):
@@ -425,7 +433,8 @@ def test_tiny_retrieval_with_lbfgsb_windows(measurements):
 
 def test_lbfgsb_refuses_what_it_does_not_use(measurements):
     for settings in (dict(recycling="fixed"), dict(voxel_blocks=(2,)),
-                     dict(gradient_smoothing=(1.0,)), dict(sparsity=0.1)):
+                     dict(gradient_smoothing=(1.0,)),
+                     dict(priors=(Prior("l1", 0.1),))):
         with pytest.raises(ValueError, match="lbfgsb"):
             RetrievalConfig(optimizer="lbfgsb", **settings)
     with pytest.raises(ValueError, match="trust_region"):
@@ -440,7 +449,9 @@ def test_lbfgsb_refuses_what_it_does_not_use(measurements):
         return Retrieval(measurements, initial_guess(), RetrievalConfig(**settings)).id
 
     assert run_id(trust_region=0.3) == run_id(trust_region=0.5)
-    assert run_id(sparsity=0.1) != run_id() != run_id(sparsity=0.0)
+    l1 = Prior("l1", 0.1)
+    assert run_id(priors=(l1,)) != run_id() != run_id(priors=())
+    assert run_id(priors=()) == run_id(priors=(Prior("l1", 0.0),))
     assert run_id(optimizer="lbfgsb", trust_region=0.3) != run_id(optimizer="lbfgsb",
                                                                   trust_region=0.5)
 
@@ -472,7 +483,7 @@ def test_cli_retrieve_passes_the_coarse_to_fine_options(tmp_path, measurements, 
     assert config["voxel_blocks"] == [2, 1] and config["stage_steps"] == [1.0, 0.25]
     assert config["gradient_smoothing"] == [1.5, 0.0] and config["image_photons"] == [1.0, 3.0]
     assert (config["saturation_window"], config["step_decay"]) == (6, 0.5)
-    assert config["sparsity"] == 0.05
+    assert {"term": "l1", "weight": 0.05, "schedule": "noise", "options": {}} in config["priors"]
     assert (config["min_ess"], config["recycling_memory"]) == (0.4, 0.5)
     assert (config["recycling"], config["recycle_gradient"]) == ("fixed", False)
     assert main(argv) != 0  # the result exists

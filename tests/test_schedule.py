@@ -16,6 +16,7 @@ from cloudct.mc.render import render
 from cloudct.retrieval.config import RetrievalConfig
 from cloudct.retrieval.loop import Retrieval
 from cloudct.retrieval.optimizers import bounded_update
+from cloudct.retrieval.priors import Prior
 from cloudct.retrieval.schedule import (
     FIXED_FRACTIONS,
     ITERATIONS_LEFT,
@@ -163,7 +164,7 @@ def measurements():
 
 SETTINGS = dict(photons=4000, stages=(1,), saturation_window=5, significance=0.2,
                 photon_growth=1.5, photon_cap=2.0, step_floor=0.25, max_change=0.5,
-                sparsity=0.01, sparsity_schedule="noise", checkpoint_every=1)
+                priors=(Prior("l1", 0.01, "noise"),), checkpoint_every=1)
 
 
 def test_a_resumed_run_continues_the_schedule_bitwise(tmp_path, measurements):

@@ -17,7 +17,9 @@ and the final medium's loss from fresh paths (``--final-loss-photons``, not time
 logged losses of recycled runs come from the stored paths the steps were fitted to, and a
 single render's squared residual is biased by its variance, so runs are compared on
 ``final_loss_fresh``, 1/2 sum w (I_A - m)(I_B - m) over two independent renders A and B.
-Usage::
+With ``--photon-budget`` (and a fixed ``--photons``) the run stops after the photons traced
+reach the budget instead of after ``--minutes``: settings compared at equal compute, whatever
+else the machine runs (the ablation of the priors, ``retrieval.priors``). Usage::
 
     python -m benchmarks retrieval.single_cloud --minutes 60 [--recycling none|fixed|adaptive]
         [--photons 100000] [--step 2.0] [--voxel-blocks 4 2 1] [--output FILE.json]
@@ -27,6 +29,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import time
 from pathlib import Path
@@ -34,8 +37,15 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from benchmarks.common import RESULTS, WORK, markdown_table, run_header, write_result
-from cloudct.cli.retrieve import add_run_options, config_from_options
+from benchmarks.common import (
+    RESULTS,
+    SHELL_LOG,
+    WORK,
+    markdown_table,
+    run_header,
+    write_result,
+)
+from cloudct.cli.run_options import add_run_options, config_from_options
 from cloudct.mc.render import default_method, render, single_cloud_medium
 from cloudct.mc.scene import Scene
 from cloudct.measurements import (
@@ -95,6 +105,7 @@ def at_marks(log: dict, marks_s: list[float]) -> dict:
             "delta": log["delta"][i], "loss": log["loss"][i],
             "epsilon_average": log["epsilon_average"][i],
             "delta_average": log["delta_average"][i],
+            **{name: log[name][i] for name in SHELL_LOG if name in log},
         }
     return out
 
@@ -153,6 +164,11 @@ def main() -> None:
                              "the truth with HG optics, benchmarks/scenes.py): the carved "
                              "start takes its optics, the settings its defaults; default: the "
                              "truth's optics")
+    parser.add_argument("--photon-budget", type=float, default=None,
+                        help="stop after the iteration at which the photons traced (the "
+                             "images' and the gradient's, as the log counts them) reach this "
+                             "many: runs compared at equal compute whatever else the machine "
+                             "runs (give --photons a count: auto follows the machine)")
     parser.add_argument("--start", default=None,
                         help="start from this medium netCDF (e.g. a --medium-output; its "
                              "cloud_mask is the hull) instead of the carved hull")
@@ -193,7 +209,13 @@ def main() -> None:
 
     result["initial"] = dict(zip(("epsilon", "delta"), epsilon_delta(run.truth, eps0),
                                  strict=True))
-    retrieved = run.run(progress=True)
+    if args.photon_budget is None:
+        retrieved = run.run(progress=True)
+    else:  # as Retrieval.run, stopping at the budget
+        while sum(run.state.log["photons"]) < args.photon_budget:
+            run.step()
+        retrieved = run.result()
+    result["photon_budget"] = args.photon_budget
     if args.medium_output is not None:
         Path(args.medium_output).parent.mkdir(parents=True, exist_ok=True)
         retrieved.to_netcdf(args.medium_output)
@@ -213,20 +235,25 @@ def main() -> None:
 
 
 def marks_markdown(result: dict) -> str:
-    """Epsilon, delta and the loss at the start, each time mark and the end, as a table."""
+    """Epsilon, delta and the loss at the start, each time mark and the end, with epsilon's
+    parts outside the true cloud and by optical distance from its lit and viewed boundary,
+    as a table."""
+    log = result["log"]
+    shells = [name for name in SHELL_LOG if name in log]
     rows = [["start", "0", f"{result['initial']['epsilon']:.3f}",
-             f"{result['initial']['delta']:+.3f}", "", ""]]
-    for mark, v in result["marks"].items():
+             f"{result['initial']['delta']:+.3f}", "", "", *([""] * len(shells))]]
+    final = {**result["final"], "iteration": result["iterations"],
+             **{name: log[name][-1] for name in shells}, "epsilon_average": math.nan}
+    for mark, v in [*result["marks"].items(), ("end", final)]:
         if v is not None:
             rows.append([mark.replace("_", " "), str(v["iteration"]), f"{v['epsilon']:.3f}",
                          f"{v['delta']:+.3f}", f"{v['loss']:.3g}",
-                         f"{v['epsilon_average']:.3f}"])
-    final = result["final"]
-    rows.append(["end", str(result["iterations"]), f"{final['epsilon']:.3f}",
-                 f"{final['delta']:+.3f}", f"{final['loss']:.3g}", ""])
+                         f"{v['epsilon_average']:.3f}", *(f"{v[n]:.3f}" for n in shells)])
     fresh = result.get("final_loss_fresh")
     lines = markdown_table(["time", "iteration", "epsilon", "delta", "loss",
-                            "epsilon of the average"], rows)
+                            "epsilon of the average",
+                            *(n.removeprefix("epsilon_").replace("_", " ") for n in shells)],
+                           rows)
     if fresh:
         lines += ["", f"Final loss from fresh paths: {fresh['loss']:.3g} "
                       f"({fresh['photons']} photons per render)."]

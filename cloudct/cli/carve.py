@@ -70,7 +70,8 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
                    "clear-sky background (default: per-view rule)")
     p.add_argument("--profile", choices=PROFILES, default="excess",
                    help="shape of the extinction in the hull: 'excess' (soft carving, the "
-                   "default) or 'constant' (the seed paper's)")
+                   "default), 'adiabatic' (soft carving x (z - z_base)^(2/3) above the hull's "
+                   "base) or 'constant' (the seed paper's)")
     p.add_argument("--extinction", type=float,
                    help="mean cloud extinction in the hull [1/km] (default: fitted)")
     p.add_argument("--fit-photons", type=int, default=FIT_PHOTONS,

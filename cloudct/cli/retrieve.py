@@ -16,15 +16,19 @@ from cloudct.cli.options import (
     add_backend_option,
     add_distributed_options,
     add_optics_option,
-    add_phase_truncation_option,
     chosen_backend,
     measured_optics,
     medium_from_options,
 )
+from cloudct.cli.run_options import (
+    OPTION_NAMES,
+    add_config_options,
+    add_run_options,
+    config_from_options,
+    run_settings,
+)
 from cloudct.distributed import close_client, connect
 from cloudct.les import bundled_single_cloud, seed_paper_cloud_field
-from cloudct.mc.gradient import ESTIMATORS
-from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS
 from cloudct.mc.scene import build_scene
 from cloudct.measurements import load_measurements, save_measurements, synthesize_measurements
 from cloudct.medium import cell_edges, load_medium, save_medium
@@ -33,13 +37,6 @@ from cloudct.optics import DEFAULT_OPTICS, optics_name, phase_truncation, to_opt
 from cloudct.retrieval.carving import carve, initial_medium
 from cloudct.retrieval.config import (
     AUTO,
-    AVERAGING,
-    IMAGE_METHODS,
-    OPTIMIZERS,
-    RECYCLING,
-    SPARSITY,
-    SPARSITY_SCHEDULES,
-    TRANSMITTANCE,
     RetrievalConfig,
     settings_for_optics,
 )
@@ -49,14 +46,13 @@ from cloudct.retrieval.config_file import (
     ResumeConflict,
     config_from_settings,
     config_to_toml,
-    load_config,
     resume_message,
     toml_value,
 )
 from cloudct.retrieval.loop import Retrieval
-from cloudct.retrieval.photon_budget import TARGET_SECONDS, target_seconds
+from cloudct.retrieval.photon_budget import target_seconds
+from cloudct.retrieval.priors import Prior, prior_text
 from cloudct.retrieval.report import write_report
-from cloudct.retrieval.schedule import PLATEAU_ANSWERS, SCHEDULES
 
 
 def _refuse_overwrite(path: Path, overwrite: bool) -> None:
@@ -98,72 +94,6 @@ DEMO_SCENES = {
                              DEMO_CONFIG.with_name("demo_cloud_field.toml")),
 }
 
-#: Options of a run (argparse's dest) -> their :class:`RetrievalConfig` field.
-OPTION_FIELDS = {dest: dest for dest in (
-    "iterations", "photons", "optimizer", "step", "trust_region", "sparsity", "time_limit",
-    "recycling", "period", "min_ess", "recycling_memory", "stages", "stage_photons",
-    "voxel_blocks", "stage_steps", "gradient_smoothing", "image_photons", "saturation_window",
-    "step_decay", "estimator", "pixel_sampling", "averaging", "averaging_decay", "seed",
-    "checkpoint_every", "transmittance", "iteration_seconds", "schedule", "significance",
-    "plateau", "photon_growth", "photon_cap", "step_floor", "max_change", "sparsity_schedule",
-    "phase_truncation", "image_method",
-)} | {"fresh_gradient": "recycle_gradient"}  # --fresh-gradient: recycle_gradient = false
-OPTION_NAMES = {field: "--" + dest.replace("_", "-") for dest, field in OPTION_FIELDS.items()}
-
-
-def given_options(args: argparse.Namespace) -> dict[str, Any]:
-    """The :class:`RetrievalConfig` fields given on the command line (an option left out
-    is None)."""
-    given = {}
-    for dest, field in OPTION_FIELDS.items():
-        value = getattr(args, dest, None)
-        if value is None:
-            continue
-        if dest == "fresh_gradient":
-            value = not value
-        given[field] = tuple(value) if isinstance(value, list) else value
-    return given
-
-
-def run_settings(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, str | None]]:
-    """The settings of a run, later ones first: the options on the command line, the
-    ``--config`` file, the command's defaults (its bundled configuration file, the
-    iterations and photons of :func:`add_run_options`), RetrievalConfig's. Returns the
-    settings and where those of the command line (None) and of --config (the file) came
-    from."""
-    settings: dict[str, Any] = {}
-    if getattr(args, "defaults_file", None) is not None:
-        settings.update(load_config(args.defaults_file))
-    settings.update(getattr(args, "run_defaults", {}))
-    origins: dict[str, str | None] = {}
-    if getattr(args, "config", None) is not None:
-        from_file = load_config(args.config, base=settings)
-        settings.update(from_file)
-        origins.update(dict.fromkeys(from_file, args.config))
-    given = given_options(args)
-    if "stages" in given:  # the file's other per-stage settings must fit the new stages
-        misfits = [OPTION_NAMES[f] for f in STAGE_FIELDS if f not in given and origins.get(f)
-                   and len(settings[f]) != len(given["stages"])]
-        if misfits:
-            raise ValueError(
-                f"--stages gives {len(given['stages'])} stages and {args.config} "
-                f"{len(settings['stages'])} [[stage]] rows: give {', '.join(misfits)} too, or "
-                "edit the file's rows"
-            )
-    settings.update(given)
-    origins.update(dict.fromkeys(given))
-    return settings, origins
-
-
-def config_from_options(args: argparse.Namespace, optics: str = DEFAULT_OPTICS,
-                        **settings) -> RetrievalConfig:
-    """The configuration of a run's options (:func:`add_run_options`, --config and the
-    command's defaults, :func:`run_settings`) for a medium of cloud ``optics``
-    (:func:`~cloudct.retrieval.config.settings_for_optics`); ``settings`` (other
-    :class:`RetrievalConfig` fields) are added and take precedence."""
-    return config_from_settings(settings_for_optics({**run_settings(args)[0], **settings},
-                                                    optics))
-
 
 def _write_config(args: argparse.Namespace) -> int:
     """``--write-config``: the run's settings as a commented TOML file on stdout."""
@@ -183,6 +113,8 @@ def _resume_conflict(conflicts: dict, origins: dict[str, str | None]) -> str:
     each as the command line or the --config file gave it."""
 
     def shown(value: Any, origin: str | None) -> str:  # as the command line or a file has it
+        if isinstance(value, tuple) and value and isinstance(value[0], Prior):
+            return " ".join(prior_text(p) for p in value)
         if origin is not None:
             return toml_value(value)
         return " ".join(str(v) for v in value) if isinstance(value, tuple) else str(value)
@@ -197,6 +129,8 @@ def _resume_conflict(conflicts: dict, origins: dict[str, str | None]) -> str:
             label = f"{OPTION_NAMES[field]} {shown(asked, None)}"
         elif field in STAGE_FIELDS:
             label = f"{origin}'s [[stage]] {STAGE_FIELDS[field]} values {toml_value(asked)}"
+        elif field == "priors":
+            label = f"{origin}'s [[prior]] rows {shown(asked, origin)}"
         else:
             label = f"{origin}'s {field} = {toml_value(asked)}"
         lines[label] = shown(kept, origin)
@@ -302,151 +236,6 @@ def _cli_demo(args: argparse.Namespace) -> int:
     print(f"done in {time.perf_counter() - start:.0f} s: epsilon {eps:.1%}, delta {delta:+.1%}; "
           f"report {summary}")
     return 0
-
-
-def photon_count(text: str) -> int | str:
-    """``--photons``: a count, or ``auto``."""
-    return AUTO if text == AUTO else int(text)
-
-
-def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
-                    photons: int | str | None = None) -> None:
-    """The options of a retrieval run (iterations, photons, optimiser, step, coarse-to-fine
-    stages, recycling) with these defaults for ``--iterations`` and ``--photons`` (None:
-    :class:`RetrievalConfig`'s, or the command's configuration file's); the others default
-    to RetrievalConfig's. Every option defaults to None, so that :func:`given_options`
-    tells those given on the command line."""
-    c = RetrievalConfig
-    p.set_defaults(run_defaults={k: v for k, v in (("iterations", iterations),
-                                                   ("photons", photons)) if v is not None})
-    p.add_argument("--iterations", type=int,
-                   help=f"iterations in all (default {iterations or 'the configuration file'})")
-    p.add_argument("--photons", type=photon_count,
-                   help="gradient photons per iteration (the images': x --image-photons), or "
-                        "auto: as many as fill --iteration-seconds on the device (default "
-                        f"{photons or 'the configuration file'})")
-    p.add_argument("--iteration-seconds", type=float,
-                   help="--photons auto: the wall time an iteration aims at (default "
-                        f"{TARGET_SECONDS['cpu']:g} on a CPU, {TARGET_SECONDS['cuda']:g} on a "
-                        "GPU)")
-    p.add_argument("--optimizer", choices=OPTIMIZERS,
-                   help=f"adam, sgd, or lbfgsb (L-BFGS-B windows on recycled paths; default "
-                        f"{c.optimizer})")
-    p.add_argument("--step", type=float,
-                   help=f"step size [1/km per iteration] (adam, sgd; default {c.step})")
-    p.add_argument("--trust-region", type=float,
-                   help="lbfgsb: relative change of a voxel's extinction per window "
-                        f"(default {c.trust_region})")
-    p.add_argument("--sparsity", type=float,
-                   help="weight of an L1 prior on the cloud extinction [1/km^2]: the loss "
-                        "gains this x the loss of a dark medium x the cloud's extinction "
-                        f"cross-section [km^2] (default {SPARSITY}, 0 with lbfgsb; 0: none)")
-    p.add_argument("--time-limit", type=float, help="stop after S seconds")
-    p.add_argument("--recycling", choices=RECYCLING,
-                   help=f"path recycling policy (seed paper Alg. 2; default {c.recycling})")
-    p.add_argument("--period", type=int,
-                   help="recycling period N_r (fixed) or maximum period (adaptive); lbfgsb: "
-                        f"evaluations per window (default {c.period})")
-    p.add_argument("--min-ess", type=float,
-                   help="adaptive recycling: resample when the ESS fraction falls below this "
-                        f"(default {c.min_ess})")
-    p.add_argument("--recycling-memory", type=float, metavar="GIB",
-                   help="memory for the two path stores [GiB] (default: camera connections "
-                        "while a store fits 2 GiB, else voxel crossings); camera connections "
-                        "replay fastest")
-    p.add_argument("--fresh-gradient", action="store_true", default=None,
-                   help="with --recycling: recycle only the residual's images and trace the "
-                        "gradient's paths fresh every iteration")
-    p.add_argument("--stages", type=int, nargs="+",
-                   help="coarse-to-fine stages: pixel block sizes, coarse to fine (default "
-                        f"{' '.join(map(str, c.stages))})")
-    p.add_argument("--stage-photons", type=float, nargs="+",
-                   help="per stage: photons per iteration as a multiple of --photons (default "
-                        "1 at every stage)")
-    p.add_argument("--voxel-blocks", type=int, nargs="+",
-                   help="per stage: voxels tied in blocks of this size (default 1 at every "
-                        "stage)")
-    p.add_argument("--stage-steps", type=float, nargs="+",
-                   help="per stage: the step as a multiple of --step (default 1 at every "
-                        "stage)")
-    p.add_argument("--gradient-smoothing", type=float, nargs="+",
-                   help="per stage: Gaussian sigma [voxels] the gradient is smoothed with "
-                        "inside the hull (default 1 at every stage, 0 with lbfgsb)")
-    p.add_argument("--image-photons", type=float, nargs="+",
-                   help="per stage: photons of the residual's images as a multiple of the "
-                        "gradient's (default 2 at every stage, 1 with lbfgsb)")
-    p.add_argument("--estimator", nargs="+", choices=tuple(ESTIMATORS),
-                   help="per stage: the gradient estimator, "
-                        + ", ".join(f"{e.name}: {e.title}" for e in ESTIMATORS.values())
-                        + "; each traces --photons paths, on the workers of --workers or "
-                        "--scheduler where given (default sm, or score with a recycled "
-                        "gradient or lbfgsb)")
-    p.add_argument("--pixel-sampling", choices=PIXEL_SAMPLINGS,
-                   help="drt, sm: trace every pixel alike (uniform) or draw pixels in "
-                        "proportion to |residual| (residual, the default)")
-    p.add_argument("--averaging", choices=AVERAGING,
-                   help="also keep an average of the iterates, restarted at every stage change "
-                        "and step decay: uniform (Polyak-Ruppert) or ema (exponential moving "
-                        "average); the result holds it as cloud_extinction_average and the log "
-                        f"its epsilon and delta (default {c.averaging})")
-    p.add_argument("--averaging-decay", type=float,
-                   help="--averaging ema: weight of the average so far at each iterate "
-                        f"(default {c.averaging_decay})")
-    p.add_argument("--image-method", choices=IMAGE_METHODS,
-                   help="the residual's images: forward photons, or combined: forward and "
-                        "camera paths by multiple importance sampling, without the fireflies "
-                        "of a full Mie peak (recycled: camera paths fresh; not with lbfgsb; "
-                        "default forward)")
-    add_phase_truncation_option(
-        p, "the retrieval's medium",
-        "as the initial medium records; a Mie medium that records none: 3 (said in the log)")
-    p.add_argument("--transmittance", choices=TRANSMITTANCE,
-                   help="the transmittance the retrieval assumes: exponential, or medium: the "
-                        "model and mode field the measurements record (docs/transmittance.md;"
-                        " differentiated by the score function or DRT, without recycling) "
-                        f"(default {c.transmittance})")
-    p.add_argument("--saturation-window", type=int,
-                   help="iterations of the loss a plateau is judged on "
-                        f"(default {c.saturation_window})")
-    p.add_argument("--step-decay", type=float,
-                   help="last stage: multiply the step by this at a plateau of the loss "
-                        f"(default {c.step_decay})")
-    p.add_argument("--schedule", choices=SCHEDULES,
-                   help="how a plateau of the loss is found: noise (its decrease within its "
-                        "Monte Carlo noise), threshold (less than 2 %% per window) or fixed "
-                        f"(none: the step decays at fixed fractions of the run) (default "
-                        f"{c.schedule})")
-    p.add_argument("--significance", type=float,
-                   help=f"--schedule noise: the test's false-alarm rate (default "
-                        f"{c.significance})")
-    p.add_argument("--plateau", choices=PLATEAU_ANSWERS,
-                   help="the last stage's answer to a plateau: photons (x --photon-growth up "
-                        "to --photon-cap, then the step) or step (default "
-                        f"{c.plateau})")
-    p.add_argument("--photon-growth", type=float,
-                   help=f"--plateau photons: growth per plateau (default {c.photon_growth})")
-    p.add_argument("--photon-cap", type=float,
-                   help="--plateau photons: at most this x the count the run settled at "
-                        f"(default {c.photon_cap})")
-    p.add_argument("--step-floor", type=float,
-                   help=f"the step never below this x its start (default {c.step_floor})")
-    p.add_argument("--max-change", type=float,
-                   help="per voxel and iteration, |change| <= this x (extinction + step) "
-                        "(default: unbounded)")
-    p.add_argument("--sparsity-schedule", choices=SPARSITY_SCHEDULES,
-                   help="the L1 prior's weight: fixed, or noise: x the gradient's noise "
-                        f"over the stage's first iteration's (default {c.sparsity_schedule})")
-
-
-def add_config_options(p: argparse.ArgumentParser) -> None:
-    """``--config FILE`` and ``--write-config`` (docs/retrieval_config.md)."""
-    p.add_argument("--config", metavar="FILE",
-                   help="the run's settings from a TOML file (cloudct retrieve --write-config "
-                        "writes one; a result or checkpoint netCDF gives its run's); options "
-                        "given on the command line override it")
-    p.add_argument("--write-config", action="store_true",
-                   help="print the run's settings (the defaults, with --config and the "
-                        "options given) as a commented TOML file and exit")
 
 
 def register_cli(subparsers: argparse._SubParsersAction) -> None:

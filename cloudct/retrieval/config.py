@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 from cloudct.mc.gradient import ESTIMATORS, camera_side_names, gradient_estimator
 from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS
+from cloudct.retrieval.priors import Prior, as_prior
 from cloudct.retrieval.schedule import PLATEAU_ANSWERS, SCHEDULES
 
 RECYCLING = ("none", "fixed", "adaptive")
@@ -29,10 +30,12 @@ AVERAGING = ("none", "uniform", "ema")
 TRANSMITTANCE = ("exponential", "medium")
 #: The estimators of the residual's images (cloudct.mc.render.METHODS but the backward one).
 IMAGE_METHODS = ("forward", "combined")
-#: The L1 prior's weight: fixed, or following the gradient's noise.
-SPARSITY_SCHEDULES = ("fixed", "noise")
-#: The L1 prior's weight [1/km^2] by default (with Adam or SGD).
-SPARSITY = 0.01
+#: The loss's prior terms by default with Adam or SGD (:mod:`cloudct.retrieval.priors`;
+#: none with L-BFGS-B).
+DEFAULT_PRIORS = (Prior("l1", 0.01, "noise"),)
+#: The L1 term's weight [1/km^2] where a setting of the runs before the other terms
+#: (``sparsity_schedule`` without ``sparsity``) leaves it unset: their default.
+LEGACY_SPARSITY = 0.01
 #: ``photons`` chosen by the device's speed (:mod:`cloudct.retrieval.photon_budget`).
 AUTO = "auto"
 
@@ -106,8 +109,6 @@ class RetrievalConfig:
     step_floor: float = 0.0625  # the step never below this x its start (0: no floor)
     max_change: float | None = None  # per voxel and iteration, |change| <= this x (beta +
     # the step) (Retrieval._first_order_step; None: unbounded)
-    sparsity_schedule: str = "noise"  # the L1 weight: "fixed", or "noise": x the gradient's
-    # rms standard error over that of the stage's first iteration at settled photons
     checkpoint_every: int = 20
     time_limit: float | None = None  # seconds; stop after this much wall time
     recycling: str = "none"  # "none", "fixed" (every `period` iterations) or "adaptive" (ESS)
@@ -119,8 +120,8 @@ class RetrievalConfig:
     recycle_gradient: bool = True  # False: recycle only the residual's images and trace the
     # gradient's paths fresh every iteration (Retrieval._recycled_loss_and_gradient)
     trust_region: float = 0.3  # lbfgsb: relative change of a voxel's extinction per window
-    sparsity: float | None = None  # 1/km^2: weight of the L1 prior (Retrieval.l1_gradient;
-    # None: SPARSITY, 0 with lbfgsb)
+    priors: tuple[Prior, ...] | None = None  # the loss's prior terms, each with its weight
+    # and schedule (cloudct.retrieval.priors; None: DEFAULT_PRIORS, none with lbfgsb)
     estimator: tuple[str, ...] | None = None  # per stage: gradient estimator, one of
     # cloudct.mc.gradient.ESTIMATORS (None: "sm", or "score" where the gradient is replayed;
     # a Mie medium with its full peak fills it first: settings_for_optics)
@@ -150,8 +151,12 @@ class RetrievalConfig:
             values = getattr(self, name)
             values = (default,) * len(self.stages) if values is None else values
             setattr(self, name, tuple(kind(v) for v in values))
-        if self.sparsity is None:
-            self.sparsity = 0.0 if quasi_newton else SPARSITY
+        if self.priors is None:
+            self.priors = () if quasi_newton else DEFAULT_PRIORS
+        self.priors = tuple(as_prior(p) for p in self.priors)
+        terms = [p.term for p in self.priors]
+        if len(set(terms)) < len(terms):
+            raise ValueError(f"priors name a term twice: {terms}")
         if self.phase_truncation is not None and not 0.0 <= self.phase_truncation < 90.0:
             raise ValueError(f"phase_truncation must be in [0, 90) degrees, got "
                              f"{self.phase_truncation}")
@@ -241,26 +246,23 @@ class RetrievalConfig:
             raise ValueError(
                 f"recycling_memory must be a positive number of GiB, got {self.recycling_memory}"
             )
-        if self.sparsity < 0.0:
-            raise ValueError(f"sparsity must be >= 0, got {self.sparsity}")
         if self.averaging not in AVERAGING:
             raise ValueError(f"averaging must be one of {AVERAGING}, got {self.averaging!r}")
         if not 0.0 < self.averaging_decay < 1.0:
             raise ValueError(f"averaging_decay must be in (0, 1), got {self.averaging_decay}")
         if quasi_newton and (
             self.recycling != "none" or max(self.voxel_blocks) > 1
-            or max(self.gradient_smoothing) > 0.0 or self.sparsity > 0.0
+            or max(self.gradient_smoothing) > 0.0 or self.priors
         ):
             raise ValueError(
                 "optimizer 'lbfgsb' recycles its own paths (period evaluations per window) "
                 "and minimises the sample-average loss alone: leave recycling at 'none', "
-                "voxel_blocks at 1, gradient_smoothing at 0 and sparsity at 0"
+                "voxel_blocks at 1, gradient_smoothing at 0 and no priors"
             )
 
     def _check_schedule(self) -> None:
         """The settings of :mod:`cloudct.retrieval.schedule`, each with its one-line error."""
-        for name, choices in (("schedule", SCHEDULES), ("plateau", PLATEAU_ANSWERS),
-                              ("sparsity_schedule", SPARSITY_SCHEDULES)):
+        for name, choices in (("schedule", SCHEDULES), ("plateau", PLATEAU_ANSWERS)):
             if getattr(self, name) not in choices:
                 raise ValueError(f"{name} must be one of {choices}, got "
                                  f"{getattr(self, name)!r}")

@@ -34,7 +34,13 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from cloudct.retrieval.config import AUTO, PER_STAGE_DEFAULTS, RetrievalConfig
+from cloudct.retrieval.config import (
+    AUTO,
+    LEGACY_SPARSITY,
+    PER_STAGE_DEFAULTS,
+    RetrievalConfig,
+)
+from cloudct.retrieval.priors import PRIOR_SCHEDULES, PRIORS, Prior, as_prior
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -64,7 +70,7 @@ RUN_KEYS = {k.name: k for k in (
     _run_key("photons", int, "gradient paths per iteration (x each stage's photons; the "
              "images: x image_photons), or \"auto\": fitted to iteration_seconds"),
     _run_key("iteration_seconds", float, "photons \"auto\": the wall time [s] an iteration "
-             "aims at (unset: 20 on a CPU, 2 on a GPU)", 20.0),
+             "aims at (unset: 5 on a CPU, 2 on a GPU)", 5.0),
     _run_key("optimizer", str, "adam, sgd, or lbfgsb (L-BFGS-B windows on recycled paths)"),
     _run_key("step", float, "step size [1/km per iteration] (adam, sgd)"),
     _run_key("schedule", str, "how a plateau of the loss is found: noise (its decrease is "
@@ -83,10 +89,6 @@ RUN_KEYS = {k.name: k for k in (
     _run_key("step_floor", float, "the step never falls below this x its start"),
     _run_key("max_change", float, "per voxel and iteration, |change| <= this x (extinction "
              "+ step) (unset: unbounded)", 0.5),
-    _run_key("sparsity_schedule", str, "the L1 prior's weight: fixed, or noise (x the "
-             "gradient's noise over the stage's first)"),
-    _run_key("sparsity", float, "weight of an L1 prior on the cloud extinction [1/km^2] "
-             "(unset: 0.01, 0 with lbfgsb; 0: none)"),
     _run_key("pixel_sampling", str, "drt, sm: pixels drawn uniformly or in proportion to "
              "|residual| (unset: residual; uniform with score)", "residual"),
     _run_key("recycling", str, "path recycling: none, fixed (every period iterations) or "
@@ -137,7 +139,11 @@ STAGE_KEYS = {k.name: k for k in (
 #: RetrievalConfig's per-stage field -> the ``[[stage]]`` key.
 STAGE_FIELDS = {k.field: name for name, k in STAGE_KEYS.items()}
 #: Settings whose default depends on others (the optimiser, the recycling, the estimator).
-DEPENDENT = ("gradient_smoothing", "image_photons", "estimator", "pixel_sampling", "sparsity")
+DEPENDENT = ("gradient_smoothing", "image_photons", "estimator", "pixel_sampling", "priors")
+#: The keys of a ``[[prior]]`` row besides the term's options (cloudct.retrieval.priors).
+PRIOR_KEYS = ("term", "weight", "schedule")
+#: The keys of files written before the prior terms: the L1 term's weight and schedule.
+LEGACY_PRIOR_KEYS = ("sparsity", "sparsity_schedule")
 _KINDS = {int: "an integer", float: "a number", str: "a string", bool: "true or false"}
 #: Fields whose key also takes the string "auto" (a count chosen by the run).
 AUTO_KEYS = ("photons",)
@@ -184,6 +190,9 @@ def config_to_toml(config: RetrievalConfig, *, comments: bool = False,
     for name, key in RUN_KEYS.items():
         value = getattr(config, name)
         add(name, key, value, value is None or name in unset, True)
+    commented = "priors" in unset
+    if not config.priors and (comments or not commented):
+        lines.append(f"{'# ' if commented else ''}prior = []")
     for stage in range(len(config.stages)):
         lines.append("")
         if comments and stage == 0:
@@ -192,6 +201,22 @@ def config_to_toml(config: RetrievalConfig, *, comments: bool = False,
         for name, key in STAGE_KEYS.items():
             add(name, key, getattr(config, key.field)[stage], key.field in unset,
                 stage == 0)
+    if comments:
+        lines += ["", "# the loss's prior terms, one [[prior]] row each (prior = [] above: none;"
+                  " unset: the", "# defaults, none with lbfgsb): term (one of "
+                  f"{', '.join(PRIORS)}), weight, schedule", f"# ({' or '.join(PRIOR_SCHEDULES)})"
+                  " and the term's options (docs/retrieval_config.md)"]
+    for prior in config.priors:
+        if comments or not commented:
+            lines.append("")
+        row = {"term": prior.term, "weight": prior.weight, "schedule": prior.schedule,
+               **prior.options}
+        for name, value in (("", "[[prior]]"), *row.items()):
+            text = value if not name else f"{name} = {toml_value(value)}"
+            if not commented:
+                lines.append(text)
+            elif comments:
+                lines.append(f"# {text}")
     return "\n".join(lines) + "\n"
 
 
@@ -234,14 +259,65 @@ def parse_config(text: str, source: str = "configuration") -> dict[str, Any]:
     except tomllib.TOMLDecodeError as err:
         raise ConfigFileError(f"{source} is not a TOML file: {err}") from None
     settings: dict[str, Any] = {}
+    legacy = {name: data.pop(name) for name in LEGACY_PRIOR_KEYS if name in data}
+    if legacy:
+        if "prior" in data:
+            raise ConfigFileError(f"{source}: {' and '.join(legacy)} (the L1 term's settings "
+                                  "before [[prior]] rows) and [[prior]] rows: give the rows "
+                                  "alone")
+        weight = _typed(legacy.get("sparsity", LEGACY_SPARSITY),
+                        Key("sparsity", "priors", float, ""), f"{source}: ")
+        schedule = _typed(legacy.get("sparsity_schedule", "noise"),
+                          Key("sparsity_schedule", "priors", str, ""), f"{source}: ")
+        settings["priors"] = legacy_priors(weight, schedule, source)
     for name, value in data.items():
         if name == "stage":
             settings.update(_parse_stages(value, source))
+        elif name == "prior":
+            settings["priors"] = _parse_priors(value, source)
         elif name in RUN_KEYS:
             settings[name] = _typed(value, RUN_KEYS[name], f"{source}: ")
         else:
             raise _unknown(name, f"{source}: ", in_stage=False)
     return settings
+
+
+def legacy_priors(sparsity: float, schedule: str, source: str | None = None
+                  ) -> tuple[Prior, ...]:
+    """The priors of the settings ``sparsity`` and ``sparsity_schedule`` of files and
+    results written before the prior terms (the L1 term alone; none at weight 0)."""
+    try:
+        return (Prior("l1", sparsity, schedule),) if sparsity > 0.0 else ()
+    except ValueError as err:
+        if source is None:
+            raise
+        raise ConfigFileError(f"{source}: {str(err).replace('prior l1: ', 'sparsity ')}"
+                              ) from None
+
+
+def _parse_priors(rows: Any, source: str) -> tuple[Prior, ...]:
+    """``[[prior]]`` rows (or ``prior = []``) as :class:`Prior` terms, each checked."""
+    if not isinstance(rows, list) or not all(isinstance(row, dict) for row in rows):
+        raise ConfigFileError(f"{source}: prior must be [[prior]] tables, one per term, or "
+                              f"[] for none, got {toml_value(rows)}")
+    priors = []
+    for i, row in enumerate(rows, 1):
+        where = f"{source}: [[prior]] {i}: "
+        missing = [k for k in ("term", "weight") if k not in row]
+        if missing:
+            raise ConfigFileError(f"{where}lacks {missing[0]} (every row names its term and "
+                                  "weight)")
+        for name, kind in (("term", str), ("schedule", str), ("weight", float)):
+            if name in row:
+                row[name] = _typed(row[name], Key(name, "priors", kind, ""), where)
+        options = {k: _typed(v, Key(k, "priors", float, ""), where) for k, v in row.items()
+                   if k not in PRIOR_KEYS}
+        try:
+            priors.append(Prior(row["term"], row["weight"], row.get("schedule", "noise"),
+                                options))
+        except ValueError as err:
+            raise ConfigFileError(f"{where}{err}") from None
+    return tuple(priors)
 
 
 def _parse_stages(rows: Any, source: str) -> dict[str, tuple]:
@@ -327,8 +403,11 @@ def config_from_json(text: str) -> RetrievalConfig:
     settings.setdefault("pixel_sampling", "uniform")
     # and before the noise test, the step halved at every plateau without a floor
     settings.update({k: v for k, v in (("schedule", "threshold"), ("plateau", "step"),
-                                       ("step_floor", 0.0), ("sparsity_schedule", "fixed"))
-                     if k not in settings})
+                                       ("step_floor", 0.0)) if k not in settings})
+    # before the prior terms, the L1 term alone (none before it)
+    sparsity = settings.pop("sparsity", 0.0)
+    schedule = settings.pop("sparsity_schedule", "fixed")
+    settings.setdefault("priors", legacy_priors(sparsity or 0.0, schedule))
     return RetrievalConfig(**settings)
 
 
@@ -342,6 +421,8 @@ def _normalised(name: str, value: Any) -> Any:
                                                                      "estimator": str}
     if name in kinds:
         return tuple(kinds[name](v) for v in value)
+    if name == "priors":
+        return tuple(as_prior(p) for p in value)
     if name in RUN_KEYS and value is not None:
         return value if value == AUTO else RUN_KEYS[name].kind(value)
     return value

@@ -13,7 +13,6 @@ their TOML file are :mod:`cloudct.retrieval.config`'s and
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import math
@@ -31,8 +30,9 @@ from cloudct.mc.backend import device_description, resolve_backend
 from cloudct.mc.gradient import gradient_estimate
 from cloudct.mc.scene import Scene
 from cloudct.mc.traversal import require_smooth_flight_density
+from cloudct.mc.visibility import boundary_optical_distance
 from cloudct.measurements import assumed_transmittance, measured_transmittance
-from cloudct.medium import cell_edges, transmittance_model, validate_medium
+from cloudct.medium import transmittance_model, validate_medium
 from cloudct.netcdf import InputFileError, load_netcdf, require_variables, save_netcdf
 from cloudct.optics import kernel_arrays, optics_name, phase_truncation, with_phase_truncation
 from cloudct.retrieval.config import (
@@ -42,13 +42,14 @@ from cloudct.retrieval.config import (
     settings_for_optics,
 )
 from cloudct.retrieval.config_file import check_resume, config_from_json, config_to_toml
+from cloudct.retrieval.fingerprint import run_id
 from cloudct.retrieval.loss import (
     image_loss,
     loss_and_gradient,
     loss_std_error,
     pixel_weights,
 )
-from cloudct.retrieval.metrics import epsilon_delta
+from cloudct.retrieval.metrics import epsilon_by_shell, epsilon_delta
 from cloudct.retrieval.optimizers import (
     block_mean,
     bounded_update,
@@ -57,9 +58,10 @@ from cloudct.retrieval.optimizers import (
     smoothed_gradient,
 )
 from cloudct.retrieval.photon_budget import decision, fit_to_device, start_count, target_seconds
+from cloudct.retrieval.priors import PriorGrid
 from cloudct.retrieval.sample_average import lbfgsb_window
 from cloudct.retrieval.schedule import advance, noise_weight
-from cloudct.retrieval.state import LOG_FIELDS, RetrievalState, state_from_file
+from cloudct.retrieval.state import LOG_FIELDS, SHELL_PARTS, RetrievalState, state_from_file
 
 LOGGER = logging.getLogger(__name__)
 
@@ -86,40 +88,6 @@ def coarse_measurements(measurements: xr.Dataset, block: int) -> xr.Dataset:
     return ds
 
 
-def run_id(measurements: xr.Dataset, config: RetrievalConfig) -> str:
-    """A fingerprint of the measurements and settings: a checkpoint resumes only its run."""
-    h = hashlib.sha256(np.ascontiguousarray(measurements["radiance"].values).tobytes())
-    # the path stores' memory picks how they are stored, which changes rounding only; the
-    # iterate average does not change the iterates
-    ignored = ["iterations", "time_limit", "recycling_memory", "averaging", "averaging_decay"]
-    # settings added later are fingerprinted only where they act (old checkpoints resume)
-    if config.optimizer != "lbfgsb":
-        ignored.append("trust_region")
-    if config.sparsity == 0.0:  # no prior: its weight's schedule acts on nothing
-        ignored += ["sparsity", "sparsity_schedule"]
-    if config.recycle_gradient:
-        ignored.append("recycle_gradient")
-    if all(name == "score" for name in config.estimator):
-        ignored.append("estimator")
-    if config.pixel_sampling == "uniform":
-        ignored.append("pixel_sampling")
-    if config.transmittance == "exponential":
-        ignored.append("transmittance")
-    if config.photons != AUTO:
-        ignored.append("iteration_seconds")
-    if config.schedule == "threshold":  # the schedule before the noise test
-        ignored.append("schedule")
-    if config.schedule != "noise":
-        ignored.append("significance")
-    if config.plateau == "step":
-        ignored += ["plateau", "photon_growth", "photon_cap"]
-    for name, before in (("step_floor", 0.0), ("max_change", None),
-                         ("sparsity_schedule", "fixed"), ("image_method", "forward")):
-        if getattr(config, name) == before:
-            ignored.append(name)
-    settings = {k: v for k, v in asdict(config).items() if k not in ignored}
-    h.update(json.dumps(settings, sort_keys=True).encode())
-    return h.hexdigest()[:16]
 
 
 class Retrieval:
@@ -174,6 +142,10 @@ class Retrieval:
         self.truth = None if truth is None else truth["cloud_extinction"].values
         if self.truth is not None and self.truth.shape != self.mask.shape:
             raise ValueError("the true medium's grid differs from the initial medium's")
+        # each true voxel's optical distance from the lit and viewed boundary: the log
+        # splits epsilon by it (where the images speak, where the priors do)
+        self._distance = None if truth is None else boundary_optical_distance(
+            truth, Scene.from_dataset(measurements))
         quasi_newton = self.config.optimizer == "lbfgsb"
         if quasi_newton and client is not None:
             raise ValueError("optimizer 'lbfgsb' records its paths on this machine: no client")
@@ -184,7 +156,8 @@ class Retrieval:
         self._recycler = None
         self._recycler_key = None  # (stage, photons) of the recycler's stores
         self._timed = False  # whether an iteration of this process has run (compiling)
-        self._l1_gradients: dict[int, np.ndarray] = {}
+        self._empty_losses: dict[int, float] = {}
+        self._prior_grid = PriorGrid.of(self.template)
         self._stage_data = [coarse_measurements(measurements, b) for b in self.config.stages]
         self.state = RetrievalState(
             iteration=0, stage=0,
@@ -211,28 +184,28 @@ class Retrieval:
         start = time.perf_counter()
         photons, gradient_photons = self.config.photons_at(s.stage, s.photons)
         if self.optimizer is None:
-            loss, resampled, ess = self._lbfgsb_window(photons, gradient_photons), 1.0, math.nan
-            loss_error = gradient_seconds = math.nan
+            row = {"loss": self._lbfgsb_window(photons, gradient_photons), "resampled": 1.0,
+                   "ess": math.nan, "loss_std_error": math.nan, "gradient_seconds": math.nan,
+                   "prior": math.nan}
         else:
-            loss, loss_error, resampled, ess, gradient_seconds = self._first_order_step(
-                photons, gradient_photons
-            )
+            row = self._first_order_step(photons, gradient_photons)
         eps, delta = eps_average, delta_average = (math.nan, math.nan)
         average = self._add_to_average()
+        parts = dict.fromkeys(SHELL_PARTS, math.nan)
         if self.truth is not None:
             eps, delta = epsilon_delta(self.truth, s.extinction)
+            parts = epsilon_by_shell(self.truth, s.extinction, self._distance)
             if average is not None:
                 eps_average, delta_average = epsilon_delta(self.truth, average)
         seconds = time.perf_counter() - start
         s.elapsed += seconds
-        row = {
-            "loss": loss, "loss_std_error": loss_error, "epsilon": eps, "delta": delta,
-            "seconds": s.elapsed, "photons": photons + gradient_photons,
-            "step": self.config.step * self._stage_step(), "stage": s.stage,
-            "resampled": resampled, "ess": ess, "iteration_seconds": seconds,
-            "gradient_seconds": gradient_seconds, "epsilon_average": eps_average,
+        row.update({
+            "epsilon": eps, "delta": delta, "seconds": s.elapsed,
+            "photons": photons + gradient_photons, "step": self.config.step * self._stage_step(),
+            "stage": s.stage, "iteration_seconds": seconds, "epsilon_average": eps_average,
             "delta_average": delta_average,
-        }
+            **{f"epsilon_{name.replace(' ', '_')}": parts[name] for name in SHELL_PARTS},
+        })
         for key in LOG_FIELDS:
             s.log[key].append(float(row[key]))
         s.iteration += 1
@@ -284,27 +257,40 @@ class Retrieval:
             return None
         return s.average_sum / s.average_weight
 
-    def l1_gradient(self, stage: int) -> np.ndarray | float:
-        """dP/dbeta of the L1 prior at ``stage`` (0 without one; float[x, y, z] with one):
-
-            P(beta) = sparsity x L_empty x sum_v beta_v V_v
-
-        with sum_v beta_v V_v the cloud's total extinction cross-section [km^2] (V_v the
-        voxel volumes, so P does not depend on the grid) and L_empty = 1/2 sum_d w_d m_d^2
-        the loss (Eq. 41) of a medium that sends no light to the cameras, at the stage's
-        pixels. Among media that fit the images about equally well (many, at Monte Carlo
-        noise levels) the prior prefers the one with the least extinction, emptying the
-        hull's cloud-free voxels, whose gradient is mostly noise."""
-        if self.config.sparsity == 0.0:
-            return 0.0
-        if stage not in self._l1_gradients:  # once per stage (pixel_weights warns of NaNs)
+    def empty_loss(self, stage: int) -> float:
+        """L_empty = 1/2 sum_d w_d m_d^2, the loss (Eq. 41) of a medium that sends no light
+        to the cameras, at the stage's pixels: the unit of the priors' weights
+        (:mod:`cloudct.retrieval.priors`)."""
+        if stage not in self._empty_losses:  # once per stage (pixel_weights warns of NaNs)
             data = self._stage_data[stage]
             measured = data["radiance"].values
-            empty = image_loss(np.zeros_like(measured), measured, pixel_weights(data))[0]
-            dx, dy, dz = (np.diff(e) for e in cell_edges(self.template))
-            volume = dx[:, None, None] * dy[None, :, None] * dz[None, None, :]
-            self._l1_gradients[stage] = self.config.sparsity * empty * volume
-        return self._l1_gradients[stage]
+            self._empty_losses[stage] = image_loss(np.zeros_like(measured), measured,
+                                                   pixel_weights(data))[0]
+        return self._empty_losses[stage]
+
+    def prior(self, stage: int, extinction: np.ndarray, multiple: float = 1.0
+              ) -> tuple[float, np.ndarray | float]:
+        """The priors' part of the loss at ``stage`` and its gradient (0.0 without priors):
+
+            P(beta) = L_empty sum_j w_j m_j Phi_j(beta)
+
+        with m_j = ``multiple`` for a term whose schedule is ``noise`` and 1 for a fixed
+        one (:mod:`cloudct.retrieval.priors`). With the L1 term, Phi = sum_v beta_v V_v:
+        among media that fit the images about equally well (many, at Monte Carlo noise
+        levels) the prior prefers the one with the least extinction, emptying the hull's
+        cloud-free voxels, whose gradient is mostly noise."""
+        value, gradient = 0.0, 0.0
+        for p in self.config.priors:
+            if p.weight == 0.0:
+                continue
+            phi, d_phi = p.value_and_gradient(extinction, self._prior_grid)
+            scale = p.weight * self.empty_loss(stage)
+            term = scale * d_phi
+            if p.schedule == "noise":
+                term, scale = term * multiple, scale * multiple
+            value += scale * phi
+            gradient = term if isinstance(gradient, float) else gradient + term
+        return value, gradient
 
     def _seed(self, stream: int) -> int:
         """The seed of one of the run's random streams (an iteration's photons, a stage's
@@ -328,14 +314,12 @@ class Retrieval:
         s.extinction = window.extinction
         return window.loss
 
-    def _first_order_step(
-        self, photons: int, gradient_photons: int
-    ) -> tuple[float, float, float, float, float]:
-        """Loss and gradient (fresh or recycled), preconditioned, and the optimiser's step,
-        bounded per voxel by ``max_change``; returns (loss, its standard error, resampled,
-        ESS fraction, the gradient's seconds)."""
+    def _first_order_step(self, photons: int, gradient_photons: int) -> dict[str, float]:
+        """Loss and gradient (fresh or recycled) with the priors', preconditioned, and the
+        optimiser's step, bounded per voxel by ``max_change``; returns the log's loss, its
+        standard error, resampled, ESS fraction, the gradient's seconds and the prior."""
         s, cfg = self.state, self.config
-        prior = self.l1_gradient(s.stage)
+        multiple = 1.0
         if cfg.recycling == "none":
             result = loss_and_gradient(
                 self.medium(), self._stage_data[s.stage], photons=photons,
@@ -346,17 +330,18 @@ class Retrieval:
             loss, gradient, resampled, ess = result.loss, result.gradient, 1.0, math.nan
             loss_error = result.loss_std_error
             gradient_seconds = result.gradient_info["wall_time"]
-            if cfg.sparsity_schedule == "noise" and s.photons_settled:  # x noise / first
+            noisy = any(p.schedule == "noise" for p in cfg.priors)
+            if noisy and s.photons_settled:  # x noise / first
                 multiple, rms = noise_weight(result.gradient_std_error, self.mask,
                                              s.noise_reference)
                 s.noise_reference = s.noise_reference or rms
-                prior = prior * multiple
         else:
             loss, loss_error, gradient, resampled, ess, gradient_seconds = (
                 self._recycled_loss_and_gradient(photons, gradient_photons)
             )
+        prior, prior_gradient = self.prior(s.stage, s.extinction, multiple)
         gradient = smoothed_gradient(
-            block_mean(gradient + prior, self.mask, cfg.voxel_blocks[s.stage]),
+            block_mean(gradient + prior_gradient, self.mask, cfg.voxel_blocks[s.stage]),
             self.mask, cfg.gradient_smoothing[s.stage],
         )
         self.optimizer.state = s.optimizer_state
@@ -367,7 +352,8 @@ class Retrieval:
                                      self.optimizer.step)
         s.extinction = stepped
         s.optimizer_state = self.optimizer.state
-        return loss, loss_error, resampled, ess, gradient_seconds
+        return {"loss": loss, "loss_std_error": loss_error, "resampled": resampled, "ess": ess,
+                "gradient_seconds": gradient_seconds, "prior": prior}
 
     def _recycled_loss_and_gradient(
         self, photons: int, gradient_photons: int

@@ -4,6 +4,9 @@
 
 :func:`epsilon_split` tells where epsilon comes from: extinction retrieved where the true
 cloud has none (e.g. the empty part of a space-carved hull) and errors inside the cloud.
+:func:`epsilon_by_shell` splits the errors inside the cloud further, by the voxels' optical
+distance from the cloud's lit and viewed boundary (:mod:`cloudct.mc.visibility`): where the
+images constrain the cloud (below 2) and its veiled core (beyond 5), where a prior speaks.
 """
 
 from __future__ import annotations
@@ -56,3 +59,87 @@ def epsilon_split(truth: np.ndarray, estimate: np.ndarray) -> dict[str, float]:
         "inside": float(np.abs(truth - estimate)[cloud].sum() / norm),
         "cloud_mass": float(np.abs(estimate[cloud]).sum() / norm),
     }
+
+
+#: Edges of the optical-distance shells of :func:`epsilon_by_shell`: the distance d from
+#: the lit and viewed boundary (:func:`cloudct.mc.visibility.boundary_optical_distance`)
+#: below 2, from 2 to 5, beyond 5 (the "veiled core", Forster et al. 2021).
+SHELLS = (2.0, 5.0)
+
+
+def shell_names(edges: tuple[float, ...] = SHELLS) -> list[str]:
+    """The shells' keys for increasing ``edges``: ``"below 2"``, ``"2 to 5"``,
+    ``"beyond 5"`` for the default (edges written with ``:g``).
+
+    >>> shell_names((1.0, 2.5, 10.0))
+    ['below 1', '1 to 2.5', '2.5 to 10', 'beyond 10']
+    """
+    edges = _edges(edges)
+    return ([f"below {edges[0]:g}"]
+            + [f"{a:g} to {b:g}" for a, b in zip(edges[:-1], edges[1:], strict=True)]
+            + [f"beyond {edges[-1]:g}"])
+
+
+def _edges(edges) -> tuple[float, ...]:
+    edges = tuple(float(e) for e in edges)
+    if not edges or any(not np.isfinite(e) for e in edges) or any(
+            b <= a for a, b in zip(edges[:-1], edges[1:], strict=True)):
+        raise ValueError(f"shell edges must be finite and increasing, got {edges}")
+    return edges
+
+
+def shell_index(distance: np.ndarray, edges: tuple[float, ...] = SHELLS) -> np.ndarray:
+    """Each voxel's shell, int64 of ``distance``'s shape: 0 where d < edges[0], i where
+    edges[i - 1] <= d < edges[i], len(edges) where d >= edges[-1] (the order of
+    :func:`shell_names`).
+
+    >>> shell_index(np.array([0.5, 2.0, 4.9, 5.0, 30.0])).tolist()
+    [0, 1, 1, 2, 2]
+    """
+    return np.digitize(np.asarray(distance, dtype=float), _edges(edges)).astype(np.int64)
+
+
+def epsilon_by_shell(
+    truth: np.ndarray, estimate: np.ndarray, distance: np.ndarray,
+    edges: tuple[float, ...] = SHELLS,
+) -> dict[str, float]:
+    """Epsilon split by where the error lives: outside the true cloud, and in shells of the
+    true cloud's voxels by ``distance`` (their optical distance from the lit and viewed
+    boundary, :func:`cloudct.mc.visibility.boundary_optical_distance`; shells of
+    :func:`shell_index`). Keys, every value relative to ||b*||_1 but the ratios:
+
+    - ``"outside"``: ||b||_1 where the truth is zero (as in :func:`epsilon_split`);
+    - per shell S of :func:`shell_names` (``"below 2"``, ``"2 to 5"``, ``"beyond 5"``):
+      ``S``: ||b* - b||_1 over the true cloud's voxels in S (its part of epsilon);
+      ``S + ": true mass"``: ||b*||_1 in S (the shares sum to 1);
+      ``S + ": retrieved/true"``: ||b||_1 / ||b*||_1 in S (NaN where S holds no cloud).
+
+    ``outside`` plus the shells' parts is epsilon. Truth 0, 10, 20, 10 /km at distances
+    0, 1, 3 and 7, retrieved as 1, 12, 15, 10 /km: epsilon 8 / 40, of which 1 / 40 outside,
+    2 / 40 below 2 and 5 / 40 from 2 to 5:
+
+    >>> parts = epsilon_by_shell(np.array([0.0, 10.0, 20.0, 10.0]),
+    ...                          np.array([1.0, 12.0, 15.0, 10.0]), np.array([0.0, 1, 3, 7]))
+    >>> {key: round(value, 3) for key, value in parts.items()}  # doctest: +NORMALIZE_WHITESPACE
+    {'outside': 0.025, 'below 2': 0.05, 'below 2: true mass': 0.25,
+     'below 2: retrieved/true': 1.2, '2 to 5': 0.125, '2 to 5: true mass': 0.5,
+     '2 to 5: retrieved/true': 0.75, 'beyond 5': 0.0, 'beyond 5: true mass': 0.25,
+     'beyond 5: retrieved/true': 1.0}
+    >>> round(parts["outside"] + sum(parts[s] for s in shell_names()), 12)
+    0.2
+    """
+    truth, estimate, norm = _fields(truth, estimate)
+    distance = np.asarray(distance, dtype=float)
+    if distance.shape != truth.shape:
+        raise ValueError(f"grids differ: truth {truth.shape}, distance {distance.shape}")
+    cloud = truth != 0
+    shell = shell_index(distance, edges)
+    parts = {"outside": float(np.abs(estimate[~cloud]).sum() / norm)}
+    for i, name in enumerate(shell_names(edges)):
+        inside = cloud & (shell == i)
+        true_mass = float(np.abs(truth[inside]).sum())
+        parts[name] = float(np.abs(truth - estimate)[inside].sum() / norm)
+        parts[f"{name}: true mass"] = true_mass / norm
+        parts[f"{name}: retrieved/true"] = (float(np.abs(estimate[inside]).sum()) / true_mass
+                                            if true_mass > 0 else float("nan"))
+    return parts

@@ -16,12 +16,16 @@ serves a laptop and a GPU:
 - the first iteration a run traces in a process is not used (its time includes compiling
   the kernels, or loading them from the cache).
 
-On 2 CPU cores the default of 20 s gives about the photons of the best measured settings
-of the single cloud (400,000 paths) and of the cloud field (300,000; docs/benchmarks.md):
-on the 2-core machine of 2026-11-26 the field settled at 420,000 (an iteration of 28.6 s,
-of which about 4 s do not grow with the photons). On a GPU the default of 2 s is that of
-the GPU retrieval the project measured (4 x 10^6 paths, about 1.2 s an iteration on an
-H200), not a measured optimum. Each change is a decision of the run's log
+On 2 CPU cores the default of 5 s starts a run where many iterations fit: about 200,000
+gradient paths on the single cloud and 650,000 on the two cumuli (2026-11-28). The noise
+schedule (:mod:`cloudct.retrieval.schedule`) then grows the photons 1.5x at each plateau of
+the loss, up to 16x, while ten iterations of the grown count fit in the time left, so the
+same defaults serve a 10-minute run and an hour: the 20 s of the defaults before
+2026-11-28 gave a 10-minute run 35-40 iterations, and the first ten minutes lost against
+fixed 400,000-path iterations of about 6-8 s (issue 51; docs/benchmarks.md, "Defaults for
+every run length"). On a GPU the default of 2 s is that of the GPU retrieval the project
+measured (4 x 10^6 paths, about 1.2 s an iteration on an H200), not a measured optimum.
+Each change is a decision of the run's log
 (:func:`decision`), and the count of every iteration is in its ``photons`` column. The count
 depends on the measured times, so two runs with ``"auto"`` may trace different photons;
 give a number for iterates that repeat bitwise.
@@ -39,7 +43,7 @@ if TYPE_CHECKING:
 START = {"cpu": 50_000, "cuda": 1_000_000}
 #: The wall time [s] an iteration aims at, per back end, where ``iteration_seconds`` is
 #: not given.
-TARGET_SECONDS = {"cpu": 20.0, "cuda": 2.0}
+TARGET_SECONDS = {"cpu": 5.0, "cuda": 2.0}
 #: The band of iteration times, as multiples of the target, in which the count settles.
 SETTLED = (2.0 / 3.0, 1.5)
 #: The most the count grows, or shrinks, at one rescaling.

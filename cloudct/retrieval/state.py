@@ -10,10 +10,15 @@ from dataclasses import dataclass, field
 import numpy as np
 import xarray as xr
 
+#: The parts of epsilon the log keeps (``epsilon_`` + the key, spaces as underscores):
+#: outside the true cloud and in each optical-distance shell of
+#: :func:`cloudct.retrieval.metrics.epsilon_by_shell`.
+SHELL_PARTS = ("outside", "below 2", "2 to 5", "beyond 5")
 #: The columns of the per-iteration log (``log_*`` variables over ``iteration``).
 LOG_FIELDS = ("loss", "loss_std_error", "epsilon", "delta", "seconds", "photons", "step",
               "stage", "resampled", "ess", "gradient_seconds", "epsilon_average",
-              "delta_average")
+              "delta_average", "prior",
+              *(f"epsilon_{part.replace(' ', '_')}" for part in SHELL_PARTS))
 #: Units and long names of the log's columns (the others are counts and fractions).
 LOG_ATTRS = {
     "loss": ("1", "loss, seed paper Eq. (41)"),
@@ -27,6 +32,12 @@ LOG_ATTRS = {
     "gradient_seconds": ("s", "wall time of the iteration's fresh gradient (NaN: replayed)"),
     "epsilon_average": ("1", "epsilon of the iterate average"),
     "delta_average": ("1", "delta of the iterate average"),
+    **{f"epsilon_{part.replace(' ', '_')}": (
+        "1", f"epsilon's part {part} the true cloud" if part == "outside" else
+        f"epsilon's part in the true cloud's voxels at optical distances {part} from its lit "
+        "and viewed boundary") for part in SHELL_PARTS},
+    "prior": ("1", "the priors' part of the loss at the iterate the step started from "
+                   "(cloudct.retrieval.priors; NaN with lbfgsb)"),
 }
 
 
