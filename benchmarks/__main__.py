@@ -111,6 +111,7 @@ def settings_drift(module, args: argparse.Namespace) -> str:
 
     from cloudct.cli.run_options import OPTION_NAMES
     from cloudct.retrieval.config_file import config_from_json
+    from cloudct.retrieval.priors import prior_text
 
     result = json.loads(output.read_text())
     recorded = result.get("config")
@@ -140,7 +141,8 @@ def settings_drift(module, args: argparse.Namespace) -> str:
         elif value is None:  # an option that was not given
             options.append(f"(without {OPTION_NAMES[field]})")
         else:
-            shown = " ".join(map(str, value)) if isinstance(value, tuple) else str(value)
+            shown = (" ".join(prior_text(p) for p in value) if field == "priors"
+                     else " ".join(map(str, value)) if isinstance(value, tuple) else str(value))
             options.append(f"{OPTION_NAMES[field]} {shown}")
     return " ".join(options)
 

@@ -100,8 +100,9 @@ def test_cli_demo_on_the_cloud_field(tmp_path, capsys):
     assert 'photons = "auto"' in field and "step = 0.5" in field
     assert main(["demo", "--write-config"]) == 0
     single = capsys.readouterr().out
-    assert "iteration_seconds = 5.0" in single and "step = 0.5" in single
+    assert "iterations = 120" in single and "step = 0.5" in single
     assert "# iteration_seconds = 5.0" in field and "# [[prior]]" in field
+    assert "iterations = 120" in field
     with pytest.raises(SystemExit) as refused:
         main(["demo", "--scene", "cumulus", "-o", str(tmp_path / "other")])
     assert refused.value.code == 2

@@ -136,7 +136,7 @@ def test_write_config_prints_the_defaults_as_a_commented_file(capsys, tmp_path):
     assert load_config_text(lbfgsb, tmp_path) == RetrievalConfig(optimizer="lbfgsb")
     # the demo's: its bundled file
     assert main(["demo", "--write-config"]) == 0
-    demo = RetrievalConfig(iterations=60, iteration_seconds=5.0)
+    demo = RetrievalConfig(iterations=120)
     assert load_config_text(capsys.readouterr().out, tmp_path) == demo
     assert RetrievalConfig(**load_config(DEMO_CONFIG)) == demo
     pyproject = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
