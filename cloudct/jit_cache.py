@@ -22,6 +22,10 @@ defines:
 The locator is installed when :mod:`cloudct` is imported (:func:`install_cpu_locator`), and
 for CUDA kernels when the CUDA back end is imported (:func:`install_cuda_locator`), before
 any cloudct function is compiled. Functions defined outside cloudct keep numba's locators.
+
+**How long**: :func:`compile_clock` times what a stretch of code spent compiling functions
+or loading them from this cache (a retrieval's log keeps it apart from its iterations'
+tracing, :mod:`cloudct.retrieval.photon_budget`).
 """
 
 from __future__ import annotations
@@ -31,8 +35,12 @@ import hashlib
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import cache
 from pathlib import Path
+
+from numba.core import event
 
 #: The folder of the cloudct package whose functions this cache holds.
 PACKAGE_ROOT = Path(__file__).resolve().parent
@@ -194,3 +202,22 @@ def install_cuda_locator() -> None:
     from numba.cuda.core import caching
 
     _install(caching.CacheImpl, caching._CacheLocator)
+
+
+class CompileClock(event.TimingListener):
+    """The wall time numba held its compiler lock while the clock listened: compiling a
+    function, or loading it from the cache (numba's and numba-cuda's dispatchers both take
+    the lock for either; a compilation inside another counts once)."""
+
+    @property
+    def seconds(self) -> float:
+        """Seconds spent compiling or loading (0 when nothing was)."""
+        return self.duration if self.done else 0.0
+
+
+@contextmanager
+def compile_clock() -> Iterator[CompileClock]:
+    """A :class:`CompileClock` listening while the context runs (to be read after it)."""
+    clock = CompileClock()
+    with event.install_listener("numba:compiler_lock", clock):
+        yield clock

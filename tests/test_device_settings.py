@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import json
 import re
+from contextlib import contextmanager
 
+import numpy as np
 import pytest
 import xarray as xr
 from test_retrieval import initial_guess
@@ -39,44 +41,106 @@ def measurements():
                   progress=False)
 
 
-def test_auto_photons_skip_the_first_iteration_and_log_every_change(measurements):
-    run = Retrieval(measurements, initial_guess(),
-                    RetrievalConfig(photons="auto", iteration_seconds=10.0, iterations=0))
-    s = run.state
-    assert (s.photons, s.photons_settled) == (start_count("cpu"), False)
-    run._schedule(300.0)  # the first of the process: compiling, not used
-    assert s.photons == start_count("cpu") and not s.decisions
-    run._schedule(1.0)
-    assert s.photons == 10 * start_count("cpu") and not s.photons_settled
-    run._schedule(11.0)
-    assert s.photons_settled and s.photons == s.photons_base == 10 * start_count("cpu")
-    run._schedule(1.0)  # settled: it stays
-    assert s.photons == 10 * start_count("cpu")
-    assert [d["what"] for d in s.decisions] == ["photons 50000 -> 500000",
-                                                "photons settled at 500000"]
+class DeviceClock:
+    """A fake wall clock for a run: an iteration tracing n photons (the images' and the
+    gradient's) takes n / ``rate`` seconds, the first ``slow`` iterations ``factor`` times
+    longer (a machine busy with something else, or costs of a first iteration)."""
+
+    def __init__(self, run: Retrieval, rate: float, slow: int = 0, factor: float = 1.0):
+        self.run, self.rate, self.slow, self.factor = run, rate, slow, factor
+        self.now, self.calls = 0.0, 0
+
+    def __call__(self) -> float:
+        self.calls += 1
+        if self.calls % 2 == 0:  # the end of an iteration (Retrieval.step reads it twice)
+            s = self.run.state
+            traced = sum(self.run.config.photons_at(s.stage, s.photons))
+            self.now += traced / self.rate * (self.factor if s.iteration < self.slow else 1.0)
+        return self.now
+
+
+def auto_run(measurements, monkeypatch, slow: int, factor: float, compiling: float = 0.0
+             ) -> Retrieval:
+    """A retrieval of photons "auto" aiming at 1-s iterations from 5,000 paths (a small
+    count keeps the test's iterations short) on the fake clock of a device that traces
+    60,000 photons a second (:class:`DeviceClock`), whose first iteration spends the
+    fraction ``compiling`` of its time compiling (none otherwise: the kernels the test
+    session compiled for real are left out)."""
+    config = RetrievalConfig(photons="auto", iteration_seconds=1.0, stages=(1,))
+    run = Retrieval(measurements, initial_guess(), config)
+    run.state.photons = 5000
+    run.clock = DeviceClock(run, 60_000.0, slow, factor)
+
+    class FakeCompileClock:  # read once the iteration's time is known
+        start = run.clock.now
+
+        @property
+        def seconds(self) -> float:
+            first = run.state.iteration == 0
+            return compiling * (run.clock.now - self.start) if first else 0.0
+
+    @contextmanager
+    def fake_compile_clock():
+        yield FakeCompileClock()
+
+    monkeypatch.setattr("cloudct.retrieval.loop.compile_clock", fake_compile_clock)
+    return run
+
+
+def test_auto_photons_refit_when_slow_first_iterations_sized_them(measurements, monkeypatch):
+    """The first two iterations 10x slow: the count settles 10x too low (2,000 where the
+    device traces 20,000 gradient paths, 60,000 photons with the images', per second), and
+    the median of the next three iterations' times puts it right."""
+    run = auto_run(measurements, monkeypatch, slow=2, factor=10.0)
+    for _ in range(7):
+        run.step()
+    assert run.state.log["photons"] == [15_000.0] + [6000.0] * 4 + [60_000.0] * 2
+    assert [d["what"] for d in run.state.decisions] == [
+        "photons 5000 -> 2000", "photons settled at 2000",
+        "photons 2000 -> 20000 (settled at 20000)"]
+    assert [d["iteration"] for d in run.state.decisions] == [1, 2, 5]
+    assert run.state.photons_base == 20_000
+
+
+def test_auto_photons_size_on_tracing_time_without_the_compiling(measurements, monkeypatch):
+    """A first iteration 10x slow because it compiled (9/10 of its time in numba's compiler
+    lock): the count is sized on the rest, right at once; the log keeps the compiling."""
+    run = auto_run(measurements, monkeypatch, slow=1, factor=10.0, compiling=0.9)
+    for _ in range(3):
+        run.step()
+    assert run.state.log["photons"] == [15_000.0, 60_000.0, 60_000.0]
+    assert run.state.log["compile_seconds"] == pytest.approx([2.25, 0.0, 0.0])
+    assert [d["what"] for d in run.state.decisions] == [
+        "photons 5000 -> 20000", "photons settled at 20000"]
+
+
+def test_a_fixed_count_is_never_refitted(measurements):
     fixed = Retrieval(measurements, initial_guess(), RetrievalConfig(photons=7000))
-    fixed._schedule(1.0)
-    fixed._schedule(1.0)
+    for seconds in (1.0, 100.0, 1.0, 1.0):
+        fixed._schedule(seconds)
     assert (fixed.state.photons, fixed.state.decisions) == (7000, [])
 
 
 def test_an_auto_run_traces_the_counts_it_chose_and_resumes_with_them(tmp_path, measurements):
     # a tiny problem's iterations take far less than the target: the count grows
-    config = RetrievalConfig(photons="auto", iteration_seconds=1e6, iterations=3,
+    config = RetrievalConfig(photons="auto", iteration_seconds=1e6, iterations=2,
                              stages=(1,), checkpoint_every=1)
     run = Retrieval(measurements, initial_guess(), config)
     run.state.photons = 1000  # keep the test's iterations short
     result = run.run(checkpoint=tmp_path / "ck.nc", progress=False)
     photons = result["log_photons"].values  # images' (x2) and gradient's photons
-    assert list(photons) == [3 * 1000, 3 * 1000, 3 * 16_000]
+    assert list(photons) == [3 * 1000, 3 * 16_000]
+    compiling = result["log_compile_seconds"].values
+    assert result["log_compile_seconds"].attrs["units"] == "s"
+    assert np.all((compiling >= 0.0) & (compiling <= np.diff(result["log_seconds"], prepend=0)))
     decisions = json.loads(result.attrs["decisions"])
-    assert [d["iteration"] for d in decisions] == [2, 3]
+    assert [d["iteration"] for d in decisions] == [1, 2]
     assert result.attrs["photons_now"] == 260_000 and result.attrs["photons_settled"] == 0
     resumed = Retrieval.resume(tmp_path / "ck.nc", measurements, initial_guess())
     assert (resumed.state.photons, resumed.state.decisions) == (260_000, decisions)
     summary = write_report(result, tmp_path / "report").read_text()
     assert "## What the run changed on its own" in summary
-    assert "| 2 | photons 1000 -> 16000 | photons auto:" in summary
+    assert "| 1 | photons 1000 -> 16000 | photons auto:" in summary
 
 
 @pytest.mark.skipif(NO_GPU is None, reason="a GPU is here: auto chooses it")

@@ -12,10 +12,12 @@ import sys
 import textwrap
 from pathlib import Path
 
+import numba
 import pytest
 
 from cloudct.jit_cache import (
     PACKAGE_ROOT,
+    compile_clock,
     imported_files,
     source_closure,
     source_stamp,
@@ -131,3 +133,15 @@ def test_the_cuda_kernels_use_the_same_cache(tmp_path):
     for line in out:
         name, path = line.split(" ", 1)
         assert name == "CloudctCacheLocator" and path.startswith(str(tmp_path / "kernels"))
+
+
+def test_the_compile_clock_times_compiling_and_not_calling():
+    @numba.njit
+    def square(x):
+        return x * x
+
+    with compile_clock() as first:
+        square(3.0)
+    with compile_clock() as again:
+        square(4.0)
+    assert first.seconds > 0.0 and again.seconds == 0.0

@@ -522,7 +522,7 @@ def test_cli_demo_runs_the_whole_chain_with_the_retrieve_defaults(tmp_path, caps
         assert (out / name).is_file(), name
     result = xr.load_dataset(out / "result.nc")
     assert RetrievalConfig(**json.loads(result.attrs["config"])) == RetrievalConfig(
-        iterations=2, photons=2_000, iteration_seconds=5.0)
+        iterations=2, photons=2_000)
     assert np.isfinite(result["log_epsilon"].values).all() and result.sizes["iteration"] == 2
     assert main(argv) != 0
     assert "exists (use --overwrite)" in capsys.readouterr().err

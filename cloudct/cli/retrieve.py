@@ -177,8 +177,9 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
         if client is not None:
             close_client(client)
     result.to_netcdf(output)
-    print(f"wrote {output} ({run.state.iteration} iterations, {run.state.elapsed:.0f} s); "
-          f"checkpoint {checkpoint}")
+    compiling = np.nansum(run.state.log["compile_seconds"])
+    print(f"wrote {output} ({run.state.iteration} iterations, {run.state.elapsed:.0f} s, "
+          f"{compiling:.0f} s of it compiling); checkpoint {checkpoint}")
     return 0
 
 

@@ -26,6 +26,7 @@ import xarray as xr
 from tqdm.auto import tqdm
 
 from cloudct.distributed.executor import executor
+from cloudct.jit_cache import compile_clock
 from cloudct.mc.backend import device_description, resolve_backend
 from cloudct.mc.gradient import gradient_estimate
 from cloudct.mc.scene import Scene
@@ -57,7 +58,12 @@ from cloudct.retrieval.optimizers import (
     project,
     smoothed_gradient,
 )
-from cloudct.retrieval.photon_budget import decision, fit_to_device, start_count, target_seconds
+from cloudct.retrieval.photon_budget import (
+    decision,
+    fit_auto_photons,
+    start_count,
+    target_seconds,
+)
 from cloudct.retrieval.priors import PriorGrid
 from cloudct.retrieval.sample_average import lbfgsb_window
 from cloudct.retrieval.schedule import advance, noise_weight
@@ -155,7 +161,9 @@ class Retrieval:
         self.id = run_id(measurements, self.config)
         self._recycler = None
         self._recycler_key = None  # (stage, photons) of the recycler's stores
-        self._timed = False  # whether an iteration of this process has run (compiling)
+        self.clock = time.perf_counter  # the wall clock iterations are timed by
+        self._times_at_base: list[float] = []  # settled photons "auto": the iterations' times
+        # since the last change, scaled to the settled count (photon_budget.refit_to_device)
         self._empty_losses: dict[int, float] = {}
         self._prior_grid = PriorGrid.of(self.template)
         self._stage_data = [coarse_measurements(measurements, b) for b in self.config.stages]
@@ -181,14 +189,15 @@ class Retrieval:
         """One iteration: loss and gradient, optimiser step (or an L-BFGS-B window), log
         row."""
         s = self.state
-        start = time.perf_counter()
+        start = self.clock()
         photons, gradient_photons = self.config.photons_at(s.stage, s.photons)
-        if self.optimizer is None:
-            row = {"loss": self._lbfgsb_window(photons, gradient_photons), "resampled": 1.0,
-                   "ess": math.nan, "loss_std_error": math.nan, "gradient_seconds": math.nan,
-                   "prior": math.nan}
-        else:
-            row = self._first_order_step(photons, gradient_photons)
+        with compile_clock() as compiling:
+            if self.optimizer is None:
+                row = {"loss": self._lbfgsb_window(photons, gradient_photons),
+                       "resampled": 1.0, "ess": math.nan, "loss_std_error": math.nan,
+                       "gradient_seconds": math.nan, "prior": math.nan}
+            else:
+                row = self._first_order_step(photons, gradient_photons)
         eps, delta = eps_average, delta_average = (math.nan, math.nan)
         average = self._add_to_average()
         parts = dict.fromkeys(SHELL_PARTS, math.nan)
@@ -197,10 +206,11 @@ class Retrieval:
             parts = epsilon_by_shell(self.truth, s.extinction, self._distance)
             if average is not None:
                 eps_average, delta_average = epsilon_delta(self.truth, average)
-        seconds = time.perf_counter() - start
+        seconds = self.clock() - start
+        compiled = min(compiling.seconds, seconds)
         s.elapsed += seconds
         row.update({
-            "epsilon": eps, "delta": delta, "seconds": s.elapsed,
+            "epsilon": eps, "delta": delta, "seconds": s.elapsed, "compile_seconds": compiled,
             "photons": photons + gradient_photons, "step": self.config.step * self._stage_step(),
             "stage": s.stage, "iteration_seconds": seconds, "epsilon_average": eps_average,
             "delta_average": delta_average,
@@ -209,20 +219,22 @@ class Retrieval:
         for key in LOG_FIELDS:
             s.log[key].append(float(row[key]))
         s.iteration += 1
-        self._schedule(seconds)
+        self._schedule(seconds - compiled)
         return row
 
     def _schedule(self, seconds: float) -> None:
-        """After an iteration of ``seconds``: fit ``photons = "auto"`` to the device
-        (:mod:`cloudct.retrieval.photon_budget`; not on the first iteration this object
-        traces, which compiles the kernels), then the plateau schedule
-        (:mod:`cloudct.retrieval.schedule`); each change is a decision of the log, and a
-        change of stage or step restarts the iterate average."""
-        s, timed, self._timed = self.state, self._timed, True
+        """After an iteration that traced for ``seconds`` (its compiling left out): fit
+        ``photons = "auto"`` to the device (:mod:`cloudct.retrieval.photon_budget`), then
+        the plateau schedule (:mod:`cloudct.retrieval.schedule`); each change is a decision
+        of the log, and a change of stage or step restarts the iterate average."""
+        s = self.state
         changes = []
-        if not s.photons_settled and timed:
-            changes += fit_to_device(
-                s, seconds, target_seconds(self.config.iteration_seconds, self.backend))
+        if self.config.photons == AUTO:
+            cfg = self.config
+            share = (sum(cfg.photons_at(s.stage, s.photons_base))  # of the settled count
+                     / sum(cfg.photons_at(s.stage, s.photons)))
+            changes += fit_auto_photons(s, self._times_at_base, seconds, share,
+                                        target_seconds(cfg.iteration_seconds, self.backend))
         stage, step_scale = s.stage, s.step_scale
         changes += advance(self.config, s, seconds)
         for what, why in changes:

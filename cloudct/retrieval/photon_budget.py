@@ -9,12 +9,19 @@ serves a laptop and a GPU:
 
 - the count starts at :data:`START` for the back end, and the time aimed at is
   ``iteration_seconds`` or, by default, :data:`TARGET_SECONDS` for the back end;
-- after each iteration it is rescaled by the ratio of the target time to the iteration's
-  measured time (at most :data:`MOST_UP` times up and :data:`MOST_DOWN` times down at once,
-  rounded to two significant digits), until an iteration takes between :data:`SETTLED`
-  times the target; from then on it stays (a resumed run keeps it);
-- the first iteration a run traces in a process is not used (its time includes compiling
-  the kernels, or loading them from the cache).
+- an iteration's time is its tracing time: the wall time less what it spent compiling
+  kernels or loading them from the cache (the log's ``compile_seconds``,
+  :func:`cloudct.jit_cache.compile_clock`), so a cold first iteration sizes the count as a
+  warm one does;
+- after each iteration the count is rescaled by the ratio of the target time to the
+  iteration's time (at most :data:`MOST_UP` times up and :data:`MOST_DOWN` times down at
+  once, rounded to two significant digits), until an iteration takes between
+  :data:`SETTLED` times the target: the count settles (a resumed run keeps it);
+- settled, it is fitted again when the median time of the last :data:`DRIFT_WINDOW`
+  iterations, scaled to the settled count (the noise schedule's growth taken out), leaves
+  that band: whatever slowed or sped the iterations that sized it (another process, a
+  first iteration's one-off costs) does not size the whole run. The photons grown by the
+  schedule keep their multiple of the settled count.
 
 On 2 CPU cores the default of 5 s starts a run where many iterations fit: about 200,000
 gradient paths on the single cloud and 650,000 on the two cumuli (2026-11-28). The noise
@@ -34,6 +41,7 @@ give a number for iterates that repeat bitwise.
 from __future__ import annotations
 
 import math
+from statistics import median
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -49,6 +57,8 @@ SETTLED = (2.0 / 3.0, 1.5)
 #: The most the count grows, or shrinks, at one rescaling.
 MOST_UP = 16.0
 MOST_DOWN = 4.0
+#: Settled iterations whose median time is compared with the target.
+DRIFT_WINDOW = 3
 
 
 def start_count(backend: str) -> int:
@@ -93,6 +103,42 @@ def fit_to_device(state: RetrievalState, seconds: float, target: float
         return [(f"photons settled at {state.photons}", why)]
     was, state.photons = state.photons, count
     return [(f"photons {was} -> {count}", why)]
+
+
+def refit_to_device(state: RetrievalState, seconds_at_base: float, target: float
+                    ) -> list[tuple[str, str]]:
+    """Fit a settled count again when iterations take ``seconds_at_base`` (their median
+    time scaled to ``state.photons_base``) outside the settled band around ``target``:
+    the settled count is rescaled, and ``state.photons`` with it (keeping the schedule's
+    multiple of it); returns the change as (what, why), none within the band."""
+    count = rescaled_count(state.photons_base, seconds_at_base, target)
+    if count is None:
+        return []
+    was = state.photons
+    state.photons = max(int(round(state.photons * count / state.photons_base)), 1)
+    state.photons_base = count
+    why = (f"photons auto: iterations took {seconds_at_base:.3g} s at the settled count, "
+           f"the target {target:g} s")
+    return [(f"photons {was} -> {state.photons} (settled at {count})", why)]
+
+
+def fit_auto_photons(state: RetrievalState, times_at_base: list[float], seconds: float,
+                     share: float, target: float) -> list[tuple[str, str]]:
+    """``photons = "auto"`` after an iteration that traced for ``seconds``: the count
+    rescaled until it settles (:func:`fit_to_device`), then fitted again when the median
+    of the last :data:`DRIFT_WINDOW` iterations' times scaled to the settled count (x
+    ``share``, the photons at that count over those traced) leaves the settled band
+    (:func:`refit_to_device`). ``times_at_base`` holds those times since the last change
+    (the run's, emptied at a change); returns the changes as (what, why)."""
+    if not state.photons_settled:
+        return fit_to_device(state, seconds, target)
+    times_at_base.append(seconds * share)
+    if len(times_at_base) < DRIFT_WINDOW:
+        return []
+    changes = refit_to_device(state, median(times_at_base[-DRIFT_WINDOW:]), target)
+    if changes:
+        times_at_base.clear()
+    return changes
 
 
 def decision(iteration: int, what: str, why: str) -> dict[str, int | str]:

@@ -54,7 +54,8 @@ def write_report(
     lines += [
         f"- run id: `{result.attrs.get('run_id', '?')}`",
         f"- iterations: {result.attrs.get('iterations_done', '?')}, wall time "
-        f"{float(result.attrs.get('elapsed_s', np.nan)):.0f} s, final stage "
+        f"{float(result.attrs.get('elapsed_s', np.nan)):.0f} s ({_compiling_text(result)}), "
+        "final stage "
         f"{result.attrs.get('stage', '?')}, on {result.attrs.get('device', 'an unrecorded device')}"
         f" (back end {result.attrs.get('backend', '?')})",
         "- settings: [the run's configuration](#configuration) below",
@@ -225,6 +226,14 @@ def _shells_figure(plt, parts: dict[str, float], names: list[str], path: Path) -
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _compiling_text(result: xr.Dataset) -> str:
+    """How long the run's iterations compiled kernels or loaded them from the cache."""
+    if "log_compile_seconds" not in result:
+        return "compile time not recorded"
+    seconds = np.nansum(result["log_compile_seconds"].values)
+    return f"{seconds:.0f} s of it compiling or loading kernels"
 
 
 def _priors_text(config: dict) -> str:

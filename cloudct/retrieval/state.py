@@ -17,7 +17,7 @@ SHELL_PARTS = ("outside", "below 2", "2 to 5", "beyond 5")
 #: The columns of the per-iteration log (``log_*`` variables over ``iteration``).
 LOG_FIELDS = ("loss", "loss_std_error", "epsilon", "delta", "seconds", "photons", "step",
               "stage", "resampled", "ess", "gradient_seconds", "epsilon_average",
-              "delta_average", "prior",
+              "delta_average", "prior", "compile_seconds",
               *(f"epsilon_{part.replace(' ', '_')}" for part in SHELL_PARTS))
 #: Units and long names of the log's columns (the others are counts and fractions).
 LOG_ATTRS = {
@@ -30,6 +30,8 @@ LOG_ATTRS = {
     "photons": ("1", "photons of the iteration: the residual's images' and the gradient's"),
     "step": ("km-1", "the optimiser's step of the iteration (stage multiple and decays in)"),
     "gradient_seconds": ("s", "wall time of the iteration's fresh gradient (NaN: replayed)"),
+    "compile_seconds": ("s", "wall time of the iteration spent compiling kernels or loading "
+                             "them from the cache (cloudct.jit_cache.compile_clock)"),
     "epsilon_average": ("1", "epsilon of the iterate average"),
     "delta_average": ("1", "delta of the iterate average"),
     **{f"epsilon_{part.replace(' ', '_')}": (
