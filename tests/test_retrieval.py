@@ -84,8 +84,7 @@ def test_defaults_and_per_stage_settings_left_at_none():
         "adam", 0.5, (2,), 0.5)
     assert (default.stage_photons, default.gradient_smoothing, default.image_photons) == (
         (1.0,), (1.0,), (2.0,))
-    assert default.priors == (Prior("l1", 0.01, "noise"), Prior("smoothness", 1e-4, "noise"),
-                              Prior("adiabatic", 4e-4, "noise"))
+    assert default.priors == (Prior("l1", 0.01, "noise"), Prior("smoothness", 1e-4, "noise"))
     assert default.averaging == "ema"
     assert (default.schedule, default.plateau, default.photons) == ("noise", "photons", "auto")
     three = RetrievalConfig(stages=(4, 2, 1))

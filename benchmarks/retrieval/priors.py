@@ -46,6 +46,7 @@ VARIANTS = {
     "none": ["--prior", "none"],
     "l1": ["--prior", "l1=0.01"],
     "l1+smoothness": ["--prior", "l1=0.01", "smoothness=1e-4"],
+    "l1+smoothness,seed1": ["--prior", "l1=0.01", "smoothness=1e-4", "--seed", "1"],
     "l1+smoothness4": ["--prior", "l1=0.01", "smoothness=4e-4"],
     "l1+smoothness16": ["--prior", "l1=0.01", "smoothness=1.6e-3"],
     "l1+huber": ["--prior", "l1=0.01", "smoothness=1e-4,huber=200"],

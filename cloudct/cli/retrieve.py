@@ -277,7 +277,7 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cli_report)
 
     d = subparsers.add_parser(
-        "demo", help="the whole chain on a bundled cloud (the single cloud: about 15 minutes on "
+        "demo", help="the whole chain on a bundled cloud (the single cloud: about 25 minutes on "
         "2 CPU cores)",
         description="Synthesise measurements of a bundled cloud (noise-free, sun at the "
         "zenith, the nine cameras of the scene's preset of cloudct scene, open boundaries), "
@@ -285,10 +285,10 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
         "single cloud, rico32x37x26; its run's settings are the bundled "
         "cloudct/data/demo.toml: cloudct retrieve's defaults (one stage at 2x2 pixel "
         "blocks, gradient smoothed over 1 voxel, 2x photons for the residual's images, step "
-        "0.5 /km, the priors L1, total variation and adiabatic profile falling with the "
-        "gradient's noise, the gradient by sample matching from residual-drawn pixels, more "
-        "photons and then a smaller step when the loss's decrease is within its noise, the "
-        "iterates' moving average) for 120 iterations of about 5 s. --scene "
+        "0.5 /km, the priors L1 and total variation falling with the gradient's noise, the "
+        "gradient by sample matching from residual-drawn pixels, more photons and then a "
+        "smaller step when the loss's decrease is within its noise, the iterates' moving "
+        "average) for 120 iterations, 5 s each at first. --scene "
         "cloud-field is the seed paper's cloud field, the 79 x 84 x 27 window of the LES "
         "field rico122x106x39 holding the most cloudy cells, seen by nine 86 x 86 cameras; "
         "its settings are cloudct/data/demo_cloud_field.toml (the same defaults, 120 "

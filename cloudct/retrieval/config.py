@@ -32,8 +32,7 @@ TRANSMITTANCE = ("exponential", "medium")
 IMAGE_METHODS = ("forward", "combined")
 #: The loss's prior terms by default with Adam or SGD (:mod:`cloudct.retrieval.priors`;
 #: none with L-BFGS-B).
-DEFAULT_PRIORS = (Prior("l1", 0.01, "noise"), Prior("smoothness", 1e-4, "noise"),
-                  Prior("adiabatic", 4e-4, "noise"))
+DEFAULT_PRIORS = (Prior("l1", 0.01, "noise"), Prior("smoothness", 1e-4, "noise"))
 #: The L1 term's weight [1/km^2] where a setting of the runs before the other terms
 #: (``sparsity_schedule`` without ``sparsity``) leaves it unset: their default.
 LEGACY_SPARSITY = 0.01
@@ -52,11 +51,11 @@ class RetrievalConfig:
     gradient by sample matching from pixels drawn in proportion to |residual|
     (``estimator``, ``pixel_sampling``: 100-400 times the score function's precision per
     second near the plateau; the score function where stored paths are replayed, which
-    only it and the combined estimator can), three prior terms (``priors``,
+    only it and the combined estimator can), two prior terms (``priors``,
     :mod:`cloudct.retrieval.priors`; chosen by an ablation at equal compute on the single
-    cloud and two cumuli, docs/benchmarks.md, "Priors"): L1 at 0.01 /km^2, total variation at
-    1e-4 /km and the adiabatic profile at 4e-4 /km, their weights falling with the gradient's
-    noise (none with L-BFGS-B), the noise schedule (:mod:`cloudct.retrieval.schedule`): when
+    cloud and two cumuli, docs/benchmarks.md, "Priors"): L1 at 0.01 /km^2 and total
+    variation at 1e-4 /km, their weights falling with the gradient's noise (none with
+    L-BFGS-B), the noise schedule (:mod:`cloudct.retrieval.schedule`): when
     the loss's decrease is within its Monte Carlo noise, 1.5x the photons up to 16x, then
     the step halved down to 1/16; and the iterates' exponential moving average kept beside
     the last (``averaging``). The seed paper's step of 2 /km with coarse-to-fine stages 4,
