@@ -72,12 +72,9 @@ def auto_run(measurements, monkeypatch, slow: int, factor: float, compiling: flo
     run.clock = DeviceClock(run, 60_000.0, slow, factor)
 
     class FakeCompileClock:  # read once the iteration's time is known
-        start = run.clock.now
-
         @property
-        def seconds(self) -> float:
-            first = run.state.iteration == 0
-            return compiling * (run.clock.now - self.start) if first else 0.0
+        def seconds(self) -> float:  # the first iteration's starts at 0 on the fake clock
+            return compiling * run.clock.now if run.state.iteration == 0 else 0.0
 
     @contextmanager
     def fake_compile_clock():
