@@ -20,6 +20,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
+# retrieve and demo compile their kernels ahead in other processes (cloudct.retrieval.warm_up);
+# the suite's processes compile theirs as they go, and test_warm_up.py turns it on
+os.environ.setdefault("CLOUDCT_COMPILE_AHEAD", "0")
+
 #: The test files that take longest on 2 cores (minutes each), longest first. They run
 #: before the others so that the README's parallel run (one file per worker,
 #: ``--dist loadfile``) does not end with one worker on a long file while the other idles.

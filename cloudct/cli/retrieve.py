@@ -53,6 +53,7 @@ from cloudct.retrieval.loop import Retrieval
 from cloudct.retrieval.photon_budget import target_seconds
 from cloudct.retrieval.priors import Prior, prior_text
 from cloudct.retrieval.report import write_report
+from cloudct.retrieval.warm_up import BackgroundWarmUp, tasks_for
 
 
 def _refuse_overwrite(path: Path, overwrite: bool) -> None:
@@ -71,6 +72,23 @@ def _initial_medium(
         return load_medium(init)
     grid = medium_from_options(template, measured_optics(measurements, optics))
     return initial_medium(carve(measurements, grid, backend=backend), grid)
+
+
+def _compile_ahead(config: RetrievalConfig, backend: str, optics: str | None,
+                   carving: bool) -> BackgroundWarmUp:
+    """The run's kernels that the cache lacks, compiling in other processes while this one
+    loads and carves (the forward render's, which the carving needs, compiles here)."""
+    ahead = BackgroundWarmUp(tasks_for(config, carving), backend=backend,
+                             optics=optics or DEFAULT_OPTICS)
+    if ahead.tasks:
+        print(f"compiling ahead, in other processes: {', '.join(ahead.tasks)}")
+    return ahead
+
+
+def _wait_for(ahead: BackgroundWarmUp) -> None:
+    """Wait for :func:`_compile_ahead`'s processes before the first iteration."""
+    if ahead.tasks:
+        print(f"compiled ahead in {ahead.wait():.0f} s")
 
 
 #: The demo's run settings (``cloudct demo``; ``cloudct retrieve --config`` reads it too).
@@ -137,23 +155,11 @@ def _resume_conflict(conflicts: dict, origins: dict[str, str | None]) -> str:
     return resume_message(lines)
 
 
-def _cli_retrieve(args: argparse.Namespace) -> int:
-    if args.write_config:
-        return _write_config(args)
-    if args.measurements is None:
-        raise ValueError("the measurement file is missing: cloudct retrieve MEASUREMENTS "
-                         "(or --write-config)")
-    output = Path(args.output)
-    _refuse_overwrite(output, args.overwrite)
-    settings, origins = run_settings(args)  # a bad --config file ends here, before any work
-    if not args.resume:
-        config_from_settings(settings)
-    measurements = load_measurements(args.measurements)
-    truth = load_medium(args.truth) if args.truth else None
-    checkpoint = Path(args.checkpoint or output.with_suffix(".checkpoint.nc"))
-    if not args.resume:
-        _refuse_overwrite(checkpoint, args.overwrite)
-    backend = chosen_backend(args)  # this process's; a scheduler's workers resolve theirs
+def _retrieve(
+    args: argparse.Namespace, settings: dict, origins: dict, measurements: xr.Dataset,
+    truth: xr.Dataset | None, checkpoint: Path, backend: str, ahead: BackgroundWarmUp | None,
+) -> tuple[Retrieval, xr.Dataset]:
+    """``cloudct retrieve``'s run from its start (carved or read) or its checkpoint."""
     initial = _initial_medium(measurements, args.init, args.medium, args.optics, backend)
     client = connect(args.scheduler, args.workers, backend=backend)
     if client is not None:
@@ -172,10 +178,38 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
                                            phase_truncation(initial))
             run = Retrieval(measurements, initial, config_from_settings(settings), truth=truth,
                             **where)
-        result = run.run(checkpoint=checkpoint, progress=None)
+        if ahead is not None:
+            _wait_for(ahead)
+        return run, run.run(checkpoint=checkpoint, progress=None)
     finally:
         if client is not None:
             close_client(client)
+
+
+def _cli_retrieve(args: argparse.Namespace) -> int:
+    if args.write_config:
+        return _write_config(args)
+    if args.measurements is None:
+        raise ValueError("the measurement file is missing: cloudct retrieve MEASUREMENTS "
+                         "(or --write-config)")
+    output = Path(args.output)
+    _refuse_overwrite(output, args.overwrite)
+    settings, origins = run_settings(args)  # a bad --config file ends here, before any work
+    asked = None if args.resume else config_from_settings(settings)
+    measurements = load_measurements(args.measurements)
+    truth = load_medium(args.truth) if args.truth else None
+    checkpoint = Path(args.checkpoint or output.with_suffix(".checkpoint.nc"))
+    if not args.resume:
+        _refuse_overwrite(checkpoint, args.overwrite)
+    backend = chosen_backend(args)  # this process's; a scheduler's workers resolve theirs
+    ahead = None if asked is None or args.scheduler else _compile_ahead(
+        asked, backend, measured_optics(measurements, args.optics), args.init == "carve")
+    try:
+        run, result = _retrieve(args, settings, origins, measurements, truth, checkpoint,
+                                backend, ahead)
+    finally:
+        if ahead is not None:
+            ahead.stop()
     result.to_netcdf(output)
     compiling = np.nansum(run.state.log["compile_seconds"])
     print(f"wrote {output} ({run.state.iteration} iterations, {run.state.elapsed:.0f} s, "
@@ -208,27 +242,32 @@ def _cli_demo(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     backend = chosen_backend(args)
     start = time.perf_counter()
-    truth = to_optical(demo.medium(), optics=args.optics or DEFAULT_OPTICS)
-    lo, hi = (np.array([e[i] for e in cell_edges(truth)]) for i in (0, -1))
-    scene = build_scene(lo, hi, preset=args.scene)
-    print(f"{args.scene}: {' x '.join(map(str, truth['cloud_extinction'].shape))} voxels, "
-          f"{len(scene.cameras)} views of {scene.cameras[0].nrows} x {scene.cameras[0].ncols}, "
-          f"{scene.boundary} boundaries")
-    print(f"1/4 synthesising measurements ({args.measurement_photons} photons) ...")
-    measurements = synthesize_measurements(truth, scene, photons=args.measurement_photons,
-                                           seed=1, backend=backend)
-    save_measurements(measurements, out / "measurements.nc", overwrite=True)
-    save_medium(truth, out / "truth.nc", overwrite=True)
-    print("2/4 space carving ...")
-    initial = initial_medium(carve(measurements, truth, backend=backend), truth)
-    save_medium(initial, out / "init.nc", overwrite=True)
-    each = (f"photons fitted to {target_seconds(config.iteration_seconds, backend):g} s "
-            "per iteration"
-            if config.photons == AUTO else f"{config.photons} photons each")
-    print(f"3/4 retrieving ({config.iterations} iterations, {each}) ...")
-    run = Retrieval(measurements, initial, config, truth=truth, backend=backend)
-    result = run.run(checkpoint=out / "checkpoint.nc", progress=None)
-    result.to_netcdf(out / "result.nc")
+    ahead = _compile_ahead(config, backend, args.optics, carving=True)
+    try:
+        truth = to_optical(demo.medium(), optics=args.optics or DEFAULT_OPTICS)
+        lo, hi = (np.array([e[i] for e in cell_edges(truth)]) for i in (0, -1))
+        scene = build_scene(lo, hi, preset=args.scene)
+        print(f"{args.scene}: {' x '.join(map(str, truth['cloud_extinction'].shape))} voxels, "
+              f"{len(scene.cameras)} views of {scene.cameras[0].nrows} x {scene.cameras[0].ncols}, "
+              f"{scene.boundary} boundaries")
+        print(f"1/4 synthesising measurements ({args.measurement_photons} photons) ...")
+        measurements = synthesize_measurements(truth, scene, photons=args.measurement_photons,
+                                               seed=1, backend=backend)
+        save_measurements(measurements, out / "measurements.nc", overwrite=True)
+        save_medium(truth, out / "truth.nc", overwrite=True)
+        print("2/4 space carving ...")
+        initial = initial_medium(carve(measurements, truth, backend=backend), truth)
+        save_medium(initial, out / "init.nc", overwrite=True)
+        each = (f"photons fitted to {target_seconds(config.iteration_seconds, backend):g} s "
+                "per iteration"
+                if config.photons == AUTO else f"{config.photons} photons each")
+        print(f"3/4 retrieving ({config.iterations} iterations, {each}) ...")
+        run = Retrieval(measurements, initial, config, truth=truth, backend=backend)
+        _wait_for(ahead)
+        result = run.run(checkpoint=out / "checkpoint.nc", progress=None)
+        result.to_netcdf(out / "result.nc")
+    finally:
+        ahead.stop()
     print("4/4 report ...")
     summary = write_report(result, out / "report", truth=truth, measurements=measurements,
                            backend=backend)
