@@ -43,7 +43,7 @@ from __future__ import annotations
 import math
 import os
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import xarray as xr
@@ -379,3 +379,26 @@ def load_measurements(path: str | os.PathLike) -> xr.Dataset:
             the file).
     """
     return load_netcdf(path, "measurement", validate_measurements)
+
+
+def coarse_measurements(measurements: xr.Dataset, block: int) -> xr.Dataset:
+    """Measurements of cameras with ``block`` x ``block`` times larger pixels: the block
+    mean of the radiance is exactly the box-filtered radiance of the coarser pixel. The
+    attributes (optics, noise model, transmittance) and a transmittance mode are kept."""
+    if block == 1:
+        return measurements
+    scene = Scene.from_dataset(measurements)
+    cam = scene.cameras[0]
+    if cam.nrows % block or cam.ncols % block:
+        raise ValueError(f"image size {cam.nrows}x{cam.ncols} is not divisible by {block}")
+    radiance = measurements["radiance"].values
+    nv, nr, nc = radiance.shape
+    coarse = radiance.reshape(nv, nr // block, block, nc // block, block).mean(axis=(2, 4))
+    cams = [replace(c, nrows=c.nrows // block, ncols=c.ncols // block) for c in scene.cameras]
+    ds = Scene(cams, scene.sun, scene.boundary, scene.ground_albedo).to_dataset()
+    ds["radiance"] = (("view", "row", "col"), coarse)
+    ds["radiance"].attrs.update(measurements["radiance"].attrs)
+    ds.attrs = {**measurements.attrs, **ds.attrs}
+    if "transmittance_mode" in measurements:
+        ds["transmittance_mode"] = measurements["transmittance_mode"]
+    return ds

@@ -4,8 +4,9 @@ outputs written whole or not at all.
 Every command reads its inputs (media, scenes, measurements, results, checkpoints) through
 :func:`load_netcdf`, so that a missing, truncated, empty or non-netCDF file ends in one
 line naming the file and what is wrong, not in a traceback from the HDF5 library.
-:func:`save_netcdf` writes next to the destination and moves the file into place, so a
-failed write never leaves a half-written file.
+:func:`save_netcdf` writes next to the destination and moves the file into place
+(:func:`cloudct.output_files.written_whole`), so a failed write never leaves a half-written
+file.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import xarray as xr
+
+from cloudct.output_files import written_whole
 
 
 class InputFileError(ValueError):
@@ -92,11 +95,7 @@ def save_netcdf(
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True (--overwrite) to replace it")
-    partial = path.with_name(f".{path.name}.partial")
-    try:
+    with written_whole(path, ds.nbytes) as partial:
         ds.to_netcdf(partial, engine="netcdf4", format="NETCDF4", encoding=encoding)
         if finish is not None:
             finish(partial)
-        os.replace(partial, path)
-    finally:
-        partial.unlink(missing_ok=True)

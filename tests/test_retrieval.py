@@ -8,10 +8,10 @@ import pytest
 from test_score_gradient import gradient_medium, gradient_scene
 
 from cloudct.mc.render import render
+from cloudct.measurements import coarse_measurements
 from cloudct.retrieval.loop import (
     Retrieval,
     RetrievalConfig,
-    coarse_measurements,
     run_id,
 )
 from cloudct.retrieval.metrics import epsilon_delta, epsilon_split

@@ -25,10 +25,10 @@ from benchmarks.common import RESULTS, run_header, write_result
 def main() -> None:
     from cloudct.mc.render import render, render_batches, single_cloud_medium
     from cloudct.mc.scene import Scene, single_cloud_scene
+    from cloudct.measurements import coarse_measurements
     from cloudct.medium import cell_edges
     from cloudct.retrieval.carving import carve, initial_medium
     from cloudct.retrieval.diagnostics import gradient_statistics, plot_gradient_slices
-    from cloudct.retrieval.loop import coarse_measurements
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=4)

@@ -57,10 +57,10 @@ from cloudct.mc.gradient import (
 )
 from cloudct.mc.render import render, single_cloud_medium
 from cloudct.mc.scene import Scene
+from cloudct.measurements import coarse_measurements
 from cloudct.medium import load_medium
 from cloudct.optics import with_phase_truncation
 from cloudct.retrieval.carving import carve, initial_medium
-from cloudct.retrieval.loop import coarse_measurements
 from cloudct.retrieval.optimizers import block_mean
 
 VOXEL_BLOCKS = (1, 2, 4)

@@ -36,8 +36,9 @@ from benchmarks.common import RESULTS, WORK, markdown_table, run_header, write_r
 from benchmarks.retrieval.single_cloud import measurements_for
 from cloudct.mc.render import render, single_cloud_medium
 from cloudct.mc.scene import Scene
+from cloudct.measurements import coarse_measurements
 from cloudct.retrieval.carving import carve, initial_medium
-from cloudct.retrieval.loop import Retrieval, RetrievalConfig, coarse_measurements
+from cloudct.retrieval.loop import Retrieval, RetrievalConfig
 from cloudct.retrieval.loss import image_loss
 from cloudct.retrieval.metrics import epsilon_delta, epsilon_split
 from cloudct.retrieval.optimizers import block_mean

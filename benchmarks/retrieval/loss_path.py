@@ -27,7 +27,7 @@ import xarray as xr
 
 from benchmarks.common import RESULTS, WORK, markdown_table, run_header, write_result
 from benchmarks.retrieval.single_cloud import fresh_loss, truth_and_measurements
-from cloudct.retrieval.loop import coarse_measurements
+from cloudct.measurements import coarse_measurements
 from cloudct.retrieval.metrics import epsilon_delta
 
 

@@ -49,6 +49,7 @@ from cloudct.cli.run_options import add_run_options, config_from_options
 from cloudct.mc.render import default_method, render, single_cloud_medium
 from cloudct.mc.scene import Scene
 from cloudct.measurements import (
+    coarse_measurements,
     load_measurements,
     save_measurements,
     synthesize_measurements,
@@ -57,7 +58,7 @@ from cloudct.medium import load_medium
 from cloudct.optics import DEFAULT_OPTICS, optics_name
 from cloudct.retrieval.carving import PROFILES, carve, initial_medium
 from cloudct.retrieval.config import RetrievalConfig
-from cloudct.retrieval.loop import Retrieval, coarse_measurements
+from cloudct.retrieval.loop import Retrieval
 from cloudct.retrieval.loss import cross_loss, pixel_weights
 
 

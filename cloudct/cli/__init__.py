@@ -12,6 +12,8 @@ import importlib
 import logging
 import sys
 
+from cloudct.output_files import WriteError
+
 #: Modules that contribute subcommands, in the order ``--help`` lists them.
 COMMAND_MODULES = (
     "cloudct.cli.media",
@@ -47,12 +49,13 @@ def main(argv: list[str] | None = None) -> int:
         log.setLevel(logging.INFO)
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # for a command to repeat
     if args.command is None:
         parser.print_help()
         return 0
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, FileExistsError) as err:
+    except (ValueError, FileNotFoundError, FileExistsError, WriteError) as err:
         print(f"cloudct {args.command}: error: {err}", file=sys.stderr)
         return 2
 

@@ -4,6 +4,8 @@ and the whole chain on a bundled cloud (the single cloud or the cloud field)."""
 from __future__ import annotations
 
 import argparse
+import shlex
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -32,7 +34,7 @@ from cloudct.les import bundled_single_cloud, seed_paper_cloud_field
 from cloudct.mc.scene import build_scene
 from cloudct.measurements import load_measurements, save_measurements, synthesize_measurements
 from cloudct.medium import cell_edges, load_medium, save_medium
-from cloudct.netcdf import load_netcdf, require_variables
+from cloudct.netcdf import load_netcdf, require_variables, save_netcdf
 from cloudct.optics import DEFAULT_OPTICS, optics_name, phase_truncation, to_optical
 from cloudct.retrieval.carving import carve, initial_medium
 from cloudct.retrieval.config import (
@@ -53,6 +55,7 @@ from cloudct.retrieval.loop import Retrieval
 from cloudct.retrieval.photon_budget import target_seconds
 from cloudct.retrieval.priors import Prior, prior_text
 from cloudct.retrieval.report import write_report
+from cloudct.retrieval.stopping import RunStopped
 from cloudct.retrieval.warm_up import BackgroundWarmUp, tasks_for
 
 
@@ -186,6 +189,14 @@ def _retrieve(
             close_client(client)
 
 
+def _stopped(stop: RunStopped, command: str, resume: list[str]) -> int:
+    """The line of a run stopped by a signal, with the command that continues it, and the
+    exit status of a process ended by that signal (128 + its number)."""
+    print(f"cloudct {command}: {stop}; to go on from there: cloudct {shlex.join(resume)}",
+          file=sys.stderr)
+    return 128 + stop.signum
+
+
 def _cli_retrieve(args: argparse.Namespace) -> int:
     if args.write_config:
         return _write_config(args)
@@ -207,10 +218,13 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
     try:
         run, result = _retrieve(args, settings, origins, measurements, truth, checkpoint,
                                 backend, ahead)
+    except RunStopped as stop:
+        again = args.argv if args.resume else [*args.argv, "--resume"]
+        return _stopped(stop, "retrieve", again)
     finally:
         if ahead is not None:
             ahead.stop()
-    result.to_netcdf(output)
+    save_netcdf(result, output, overwrite=True)  # refused before the run if not --overwrite
     compiling = np.nansum(run.state.log["compile_seconds"])
     print(f"wrote {output} ({run.state.iteration} iterations, {run.state.elapsed:.0f} s, "
           f"{compiling:.0f} s of it compiling); checkpoint {checkpoint}")
@@ -265,7 +279,14 @@ def _cli_demo(args: argparse.Namespace) -> int:
         run = Retrieval(measurements, initial, config, truth=truth, backend=backend)
         _wait_for(ahead)
         result = run.run(checkpoint=out / "checkpoint.nc", progress=None)
-        result.to_netcdf(out / "result.nc")
+        save_netcdf(result, out / "result.nc", overwrite=True)
+    except RunStopped as stop:  # the retrieval goes on as cloudct retrieve, then the report
+        files = {name: str(out / name) for name in ("measurements.nc", "init.nc", "truth.nc",
+                                                    "checkpoint.nc", "result.nc")}
+        return _stopped(stop, "demo", [
+            "retrieve", files["measurements.nc"], "--init", files["init.nc"], "--truth",
+            files["truth.nc"], "--checkpoint", files["checkpoint.nc"], "-o",
+            files["result.nc"], "--backend", backend, "--resume"])
     finally:
         ahead.stop()
     print("4/4 report ...")

@@ -38,6 +38,7 @@ from cloudct.mc.scene import Scene
 from cloudct.mc.sun import check_cloud_share
 from cloudct.netcdf import save_netcdf
 from cloudct.optics import DEFAULT_OPTICS, PHASE_TRUNCATION, optics_name, to_optical
+from cloudct.output_files import save_figure, written_whole
 
 RADIANCE_UNITS = "1"  # in units of the solar irradiance perpendicular to the rays, per sr
 METHODS = ("forward", "backward", "combined")
@@ -275,7 +276,8 @@ def save_previews(images: xr.Dataset, directory: str | Path) -> list[Path]:
     written = []
     for v in range(radiance.shape[0]):
         path = directory / f"view{v:02d}.png"
-        plt.imsave(path, radiance[v], cmap="gray", vmin=0.0, vmax=vmax)
+        with written_whole(path) as partial:
+            plt.imsave(partial, radiance[v], cmap="gray", vmin=0.0, vmax=vmax)
         written.append(path)
     n = radiance.shape[0]
     ncol = math.ceil(math.sqrt(n))
@@ -289,7 +291,7 @@ def save_previews(images: xr.Dataset, directory: str | Path) -> list[Path]:
     fig.suptitle(f"radiance ({images.attrs.get('method', '')}), common scale 0..{vmax:.3g}")
     fig.tight_layout()
     path = directory / "views.png"
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
     written.append(path)
     return written

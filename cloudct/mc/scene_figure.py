@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from cloudct.mc.scene import Scene, corner_rays
+from cloudct.output_files import save_figure
 
 
 def save_scene_figure(scene: Scene, box_min: np.ndarray, box_max: np.ndarray,
@@ -56,6 +57,6 @@ def save_scene_figure(scene: Scene, box_min: np.ndarray, box_max: np.ndarray,
                  f"(orange: its rays), {scene.boundary} boundaries")
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path

@@ -40,6 +40,7 @@ import xarray as xr
 from scipy.stats import gamma as gamma_dist
 
 from cloudct.jit_cache import cache_root
+from cloudct.output_files import written_whole
 
 # Water at 0.672 micron, Hale & Querry (1973), "Optical constants of water in the 200-nm to
 # 200-um wavelength region", Appl. Opt. 12, 555-563. Convention m = n + i k, k >= 0 absorbs.
@@ -286,14 +287,18 @@ def mie_table(
         f"mie_water_{wavelength:g}um_veff{veff:g}_{digest}.nc"
     )
     if path.exists():
-        with xr.open_dataset(path) as ds:
-            if _matches(ds, attrs, reff, angles):
-                return ds.load()
+        try:
+            with xr.open_dataset(path) as ds:
+                if _matches(ds, attrs, reff, angles):
+                    return ds.load()
+        except (OSError, RuntimeError, ValueError):
+            pass  # a damaged cache file: the table is computed again and replaces it
 
     ds = compute_mie_table(wavelength, m, veff, reff, angles)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        ds.to_netcdf(path)
+        with written_whole(path) as partial:
+            ds.to_netcdf(partial)
     except OSError as err:
         warnings.warn(f"could not cache the Mie table at {path}: {err}", stacklevel=2)
     return ds

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
+from cloudct.output_files import save_figure
+
 # ---------------------------------------------------------------------------------------
 # The hull figure
 # ---------------------------------------------------------------------------------------
@@ -49,7 +51,7 @@ def save_hull_figure(carved: xr.Dataset, measurements: xr.Dataset, path: str | P
     )
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
     return path
 

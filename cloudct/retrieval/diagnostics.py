@@ -18,6 +18,7 @@ import xarray as xr
 from cloudct.mc.estimate import check_residual
 from cloudct.mc.gradient import gradient_estimate, gradient_estimator
 from cloudct.mc.scene import Scene
+from cloudct.output_files import save_figure
 
 
 def _estimate(
@@ -111,6 +112,6 @@ def plot_gradient_slices(
     fig.suptitle(f"gradient slice z index {k} ({stats.attrs['seeds']} seeds)", fontsize=10)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path

@@ -18,7 +18,7 @@ import logging
 import math
 import time
 import warnings
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +32,11 @@ from cloudct.mc.gradient import gradient_estimate
 from cloudct.mc.scene import Scene
 from cloudct.mc.traversal import require_smooth_flight_density
 from cloudct.mc.visibility import boundary_optical_distance
-from cloudct.measurements import assumed_transmittance, measured_transmittance
+from cloudct.measurements import (
+    assumed_transmittance,
+    coarse_measurements,
+    measured_transmittance,
+)
 from cloudct.medium import transmittance_model, validate_medium
 from cloudct.netcdf import InputFileError, load_netcdf, require_variables, save_netcdf
 from cloudct.optics import kernel_arrays, optics_name, phase_truncation, with_phase_truncation
@@ -68,33 +72,9 @@ from cloudct.retrieval.priors import PriorGrid
 from cloudct.retrieval.sample_average import lbfgsb_window
 from cloudct.retrieval.schedule import advance, noise_weight
 from cloudct.retrieval.state import LOG_FIELDS, SHELL_PARTS, RetrievalState, state_from_file
+from cloudct.retrieval.stopping import RunStopped, stop_requests
 
 LOGGER = logging.getLogger(__name__)
-
-def coarse_measurements(measurements: xr.Dataset, block: int) -> xr.Dataset:
-    """Measurements of cameras with ``block`` x ``block`` times larger pixels: the block
-    mean of the radiance is exactly the box-filtered radiance of the coarser pixel. The
-    attributes (optics, noise model, transmittance) and a transmittance mode are kept."""
-    if block == 1:
-        return measurements
-    scene = Scene.from_dataset(measurements)
-    cam = scene.cameras[0]
-    if cam.nrows % block or cam.ncols % block:
-        raise ValueError(f"image size {cam.nrows}x{cam.ncols} is not divisible by {block}")
-    radiance = measurements["radiance"].values
-    nv, nr, nc = radiance.shape
-    coarse = radiance.reshape(nv, nr // block, block, nc // block, block).mean(axis=(2, 4))
-    cams = [replace(c, nrows=c.nrows // block, ncols=c.ncols // block) for c in scene.cameras]
-    ds = Scene(cams, scene.sun, scene.boundary, scene.ground_albedo).to_dataset()
-    ds["radiance"] = (("view", "row", "col"), coarse)
-    ds["radiance"].attrs.update(measurements["radiance"].attrs)
-    ds.attrs = {**measurements.attrs, **ds.attrs}
-    if "transmittance_mode" in measurements:
-        ds["transmittance_mode"] = measurements["transmittance_mode"]
-    return ds
-
-
-
 
 class Retrieval:
     """A cloud tomography retrieval of the cloud extinction from multi-view measurements.
@@ -436,32 +416,41 @@ class Retrieval:
         self, *, checkpoint: str | Path | None = None, progress: bool | None = None
     ) -> xr.Dataset:
         """Iterate until ``config.iterations`` (or the time limit); checkpoint every
-        ``checkpoint_every`` iterations and on interrupt; return the result Dataset."""
+        ``checkpoint_every`` iterations and on interrupt; return the result Dataset.
+        SIGTERM or Ctrl-C ends the run at the end of the current iteration: the checkpoint
+        is written and :class:`~cloudct.retrieval.stopping.RunStopped` raised
+        (:mod:`cloudct.retrieval.stopping`)."""
         cfg = self.config
         disable = None if progress is None else not progress
         bar = tqdm(total=cfg.iterations, initial=self.state.iteration, disable=disable,
                    desc="retrieve", unit="it")
-        try:
-            while self.state.iteration < cfg.iterations:
-                if cfg.time_limit is not None and self.state.elapsed >= cfg.time_limit:
-                    break
-                row = self.step()
-                bar.update(1)
-                postfix = {"loss": f"{row['loss']:.3g}", "stage": row["stage"],
-                           "photons/s": f"{row['photons'] / row['iteration_seconds']:.3g}"}
-                if not math.isnan(row["epsilon"]):
-                    postfix.update(eps=f"{row['epsilon']:.3f}", delta=f"{row['delta']:+.3f}")
-                bar.set_postfix(postfix)
-                if checkpoint is not None and self.state.iteration % cfg.checkpoint_every == 0:
+        with stop_requests() as stop:
+            try:
+                while self.state.iteration < cfg.iterations and stop.signum is None:
+                    if cfg.time_limit is not None and self.state.elapsed >= cfg.time_limit:
+                        break
+                    row = self.step()
+                    bar.update(1)
+                    postfix = {"loss": f"{row['loss']:.3g}", "stage": row["stage"],
+                               "photons/s": f"{row['photons'] / row['iteration_seconds']:.3g}"}
+                    if not math.isnan(row["epsilon"]):
+                        postfix.update(eps=f"{row['epsilon']:.3f}",
+                                       delta=f"{row['delta']:+.3f}")
+                    bar.set_postfix(postfix)
+                    if checkpoint is not None and \
+                            self.state.iteration % cfg.checkpoint_every == 0:
+                        self.save_checkpoint(checkpoint)
+            except KeyboardInterrupt:
+                if checkpoint is not None:
                     self.save_checkpoint(checkpoint)
-        except KeyboardInterrupt:
-            if checkpoint is not None:
-                self.save_checkpoint(checkpoint)
-            raise
-        finally:
-            bar.close()
+                raise
+            finally:
+                bar.close()
         if checkpoint is not None:
             self.save_checkpoint(checkpoint)
+        if stop.signum is not None:
+            raise RunStopped(stop.signum, self.state.iteration,
+                             None if checkpoint is None else Path(checkpoint))
         return self.result()
 
     def result(self) -> xr.Dataset:
@@ -541,4 +530,11 @@ class Retrieval:
                 f"measurements and settings give {run.id})"
             )
         run.state = state_from_file(ck, run.state)
+        traced = ck.attrs.get("backend", run.backend)
+        if traced != run.backend:
+            LOGGER.info(
+                "resumed on the %s back end from a checkpoint traced on %s: the iterations "
+                "from here on trace the same estimators with the same seeds, equal in "
+                "distribution, not bitwise, to those the %s run would have traced",
+                run.backend, traced, traced)
         return run

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
+from cloudct.output_files import save_figure
 from cloudct.retrieval.config_file import config_from_json, config_to_toml
 from cloudct.retrieval.metrics import (
     SHELLS,
@@ -84,7 +85,7 @@ def write_report(
         ax.set_ylabel("loss (Eq. 41)")
         ax.set_title("loss (stages differ in pixel count)", fontsize=9)
         fig.tight_layout()
-        fig.savefig(out / "loss.png", dpi=110)
+        save_figure(fig, out / "loss.png", dpi=110)
         plt.close(fig)
         lines += ["![loss](loss.png)", ""]
     if truth is not None:
@@ -117,7 +118,7 @@ def write_report(
             ax.set_xlabel("wall time [s]")
             ax.legend()
             fig.tight_layout()
-            fig.savefig(out / "epsilon_delta.png", dpi=110)
+            save_figure(fig, out / "epsilon_delta.png", dpi=110)
             plt.close(fig)
             lines += ["![epsilon and delta](epsilon_delta.png)", ""]
         _slices(plt, true_beta, beta, result["z"].values, out / "slices.png")
@@ -129,7 +130,7 @@ def write_report(
         ax.set_xlabel("true extinction [1/km]")
         ax.set_ylabel("retrieved extinction [1/km]")
         fig.tight_layout()
-        fig.savefig(out / "scatter.png", dpi=110)
+        save_figure(fig, out / "scatter.png", dpi=110)
         plt.close(fig)
         lines += ["![slices](slices.png)", "", "![scatter](scatter.png)", ""]
         if measurements is not None:
@@ -224,7 +225,7 @@ def _shells_figure(plt, parts: dict[str, float], names: list[str], path: Path) -
     fig.suptitle(f"d: optical distance from the lit and viewed boundary (shells at "
                  f"{', '.join(f'{e:g}' for e in SHELLS)})", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 
@@ -269,7 +270,7 @@ def _schedule_figure(plt, result: xr.Dataset, decisions: list[dict], path: Path)
         for ax in (top, bottom):
             ax.axvline(at, color="0.7", lw=0.6, zorder=0)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 
@@ -289,7 +290,7 @@ def _slices(plt, truth: np.ndarray, beta: np.ndarray, z: np.ndarray, path: Path)
             ax.set_title(f"{name}, z = {z[k]:.2f} km", fontsize=8)
             ax.axis("off")
     fig.colorbar(im, ax=axes, shrink=0.8, label="cloud extinction [1/km]")
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 
@@ -303,5 +304,5 @@ def _images(plt, measured: np.ndarray, rendered: np.ndarray, path: Path) -> None
             axes[row, v].set_title(f"{name} {v}", fontsize=7)
             axes[row, v].axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)

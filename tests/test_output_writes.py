@@ -1,0 +1,67 @@
+"""Outputs are written whole or not at all: a full disk or a file-size limit during a write
+leaves the previous file, removes the partial one and ends in one line naming the file, what
+it needs and what its disk has free."""
+
+from __future__ import annotations
+
+import errno
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import xarray as xr
+
+import cloudct
+from cloudct.cli import main
+from cloudct.netcdf import save_netcdf
+from cloudct.output_files import WriteError
+
+LES = str(Path(cloudct.__file__).parent / "data" / "rico32x37x26.txt")  # the single cloud
+
+
+def _les2nc(out, *extra) -> list[str]:
+    return ["les2nc", LES, "-o", str(out), "--overwrite", *extra]
+
+
+def test_a_full_disk_keeps_the_previous_file_and_says_so_in_one_line(tmp_path, capsys,
+                                                                     monkeypatch):
+    out = tmp_path / "medium.nc"
+    assert main(_les2nc(out)) == 0
+    before = out.read_bytes()
+    capsys.readouterr()
+    write = xr.Dataset.to_netcdf
+
+    def fill_the_disk(self, path, *args, **kwargs):  # half a file, then ENOSPC
+        write(self, path, *args, **kwargs)
+        with open(path, "r+b") as f:
+            f.truncate(len(before) // 2)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(xr.Dataset, "to_netcdf", fill_the_disk)
+    assert main(_les2nc(out, "--source", "another")) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith(f"cloudct les2nc: error: could not write {out} (")
+    assert "No space left on device" in err and "MiB free there; the previous file is kept" in err
+    assert out.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["medium.nc"]  # no partial file
+    with pytest.raises(WriteError, match="nothing was written"):
+        save_netcdf(xr.Dataset({"a": ("t", [1.0])}), tmp_path / "new.nc")
+    assert not (tmp_path / "new.nc").exists()
+
+
+def test_a_file_size_limit_keeps_the_previous_file(tmp_path):
+    out = tmp_path / "medium.nc"
+    assert main(_les2nc(out)) == 0
+    before = out.read_bytes()
+    limited = ("import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000)); "
+               "from cloudct.cli import main; sys.exit(main(sys.argv[1:]))")
+    proc = subprocess.run([sys.executable, "-c", limited, *_les2nc(out, "--source", "x")],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    err = proc.stderr.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"cloudct les2nc: error: could not write {out}")
+    assert "files of at most 0.02 MiB (ulimit -f); the previous file is kept" in err[0]
+    assert out.read_bytes() == before and len(before) > 20000
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["medium.nc"]
