@@ -6,13 +6,15 @@ and renamed onto it only once complete (:func:`written_whole`). A write that fai
 disk, a file-size limit, a kill) therefore leaves the previous file as it was and removes
 the partial one, and the error (:class:`WriteError`) says in one line what failed, what the
 file needed where that is known, and what its disk has free. Each process writes its own
-partial file, so two runs writing the same output do not write into one file.
+partial file, so two runs writing the same output do not write into one file, and a long run
+holds its outputs (:func:`exclusive`) so that a second one is refused at its start.
 """
 
 from __future__ import annotations
 
 import os
 import shutil
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -68,3 +70,35 @@ def _file_size_limit() -> str:
     soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
     return "" if soft == resource.RLIM_INFINITY else \
         f", files of at most {soft / 2**20:.2f} MiB (ulimit -f)"
+
+
+class OutputInUse(FileExistsError):
+    """An output that another running process is writing."""
+
+
+@contextmanager
+def exclusive(path: str | os.PathLike) -> Iterator[None]:
+    """Hold the output ``path`` for this process while the block runs: a second process
+    asking for it meanwhile gets :class:`OutputInUse`, naming this one. The lock is the
+    operating system's on the file ``.NAME.lock`` beside ``path`` (left there; it is
+    released when the process ends, however it ends)."""
+    import fcntl  # POSIX only, as the command line is
+
+    path = Path(path)
+    lock = path.with_name(f".{path.name}.lock")
+    with open(lock, "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            raise OutputInUse(f"{path} is being written by {holder}: wait for it to end, or "
+                              "write elsewhere (-o)") from None
+        f.seek(0)
+        f.truncate()
+        f.write(f"process {os.getpid()} (cloudct, started {time.strftime('%Y-%m-%d %H:%M:%S')})")
+        f.flush()
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)

@@ -5,6 +5,7 @@ it needs and what its disk has free."""
 from __future__ import annotations
 
 import errno
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -65,3 +66,24 @@ def test_a_file_size_limit_keeps_the_previous_file(tmp_path):
     assert "files of at most 0.02 MiB (ulimit -f); the previous file is kept" in err[0]
     assert out.read_bytes() == before and len(before) > 20000
     assert sorted(p.name for p in tmp_path.iterdir()) == ["medium.nc"]
+
+
+def test_a_second_run_on_the_same_output_is_refused_naming_the_first(tmp_path, capsys):
+    out = tmp_path / "result.nc"
+    hold = ("import sys, time; from cloudct.output_files import exclusive\n"
+            "with exclusive(sys.argv[1]):\n    print('held', flush=True); time.sleep(120)")
+    first = subprocess.Popen([sys.executable, "-c", hold, str(out)], stdout=subprocess.PIPE,
+                             text=True)
+    try:
+        assert first.stdout.readline().strip() == "held"
+        assert main(["retrieve", str(tmp_path / "measurements.nc"), "-o", str(out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert re.fullmatch(f"cloudct retrieve: error: {re.escape(str(out))} is being written "
+                            rf"by process {first.pid} \(cloudct, started [-0-9: ]+\): wait for "
+                            r"it to end, or write elsewhere \(-o\)", err), err
+    finally:
+        first.kill()
+        first.wait()
+    # the first process gone, its lock went with it: the run goes on to its own errors
+    assert main(["retrieve", str(tmp_path / "measurements.nc"), "-o", str(out)]) == 2
+    assert "measurement file" in capsys.readouterr().err and not out.exists()

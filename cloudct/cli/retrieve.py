@@ -36,6 +36,7 @@ from cloudct.measurements import load_measurements, save_measurements, synthesiz
 from cloudct.medium import cell_edges, load_medium, save_medium
 from cloudct.netcdf import load_netcdf, require_variables, save_netcdf
 from cloudct.optics import DEFAULT_OPTICS, optics_name, phase_truncation, to_optical
+from cloudct.output_files import exclusive
 from cloudct.retrieval.carving import carve, initial_medium
 from cloudct.retrieval.config import (
     AUTO,
@@ -204,12 +205,18 @@ def _cli_retrieve(args: argparse.Namespace) -> int:
         raise ValueError("the measurement file is missing: cloudct retrieve MEASUREMENTS "
                          "(or --write-config)")
     output = Path(args.output)
+    checkpoint = Path(args.checkpoint or output.with_suffix(".checkpoint.nc"))
+    with exclusive(output), exclusive(checkpoint):  # a second run on them is refused
+        return _retrieve_into(args, output, checkpoint)
+
+
+def _retrieve_into(args: argparse.Namespace, output: Path, checkpoint: Path) -> int:
+    """``cloudct retrieve`` with its output and checkpoint held."""
     _refuse_overwrite(output, args.overwrite)
     settings, origins = run_settings(args)  # a bad --config file ends here, before any work
     asked = None if args.resume else config_from_settings(settings)
     measurements = load_measurements(args.measurements)
     truth = load_medium(args.truth) if args.truth else None
-    checkpoint = Path(args.checkpoint or output.with_suffix(".checkpoint.nc"))
     if not args.resume:
         _refuse_overwrite(checkpoint, args.overwrite)
     backend = chosen_backend(args)  # this process's; a scheduler's workers resolve theirs
@@ -254,6 +261,13 @@ def _cli_demo(args: argparse.Namespace) -> int:
     out = Path(args.output)
     _refuse_overwrite(out / "result.nc", args.overwrite)
     out.mkdir(parents=True, exist_ok=True)
+    with exclusive(out / "result.nc"):  # a second demo into the same folder is refused
+        return _demo_into(args, demo, config, out)
+
+
+def _demo_into(args: argparse.Namespace, demo: DemoScene, config: RetrievalConfig,
+               out: Path) -> int:
+    """``cloudct demo`` with its output folder held."""
     backend = chosen_backend(args)
     start = time.perf_counter()
     ahead = _compile_ahead(config, backend, args.optics, carving=True)
