@@ -58,7 +58,8 @@ def _read(path: Path, what: str) -> xr.Dataset:
     try:
         with xr.open_dataset(path, engine="netcdf4") as stored:
             return stored.load()
-    except (OSError, RuntimeError, ValueError) as err:
+    except Exception as err:  # whatever the library raises on a damaged file
+        # (OSError, RuntimeError, ValueError; AttributeError on a damaged attribute, ...)
         reason = str(err).splitlines()[0] if str(err) else type(err).__name__
         size = path.stat().st_size
         raise InputFileError(

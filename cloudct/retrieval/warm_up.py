@@ -163,7 +163,7 @@ class BackgroundWarmUp:
             if not result.successful():
                 try:
                     result.get()
-                except Exception as error:  # noqa: BLE001 - reported, the run goes on
+                except Exception as error:  # reported, the run goes on
                     warnings.warn(f"compiling ahead ({name}) failed: {error!r}; the run "
                                   "compiles its kernels itself", RuntimeWarning, stacklevel=2)
         self._pool.close()  # the processes end on their own (killed, they would leak locks)
