@@ -6,8 +6,9 @@
   same seeds BITWISE (np.array_equal), whatever the split into tasks.
 - With recycling the paths stay on the workers: the parts do not move between recycled
   iterations and only media, residuals and results come back.
-- A worker killed in the middle of a call: the task is re-run elsewhere and the result is
-  still bitwise the single-process one; a task that keeps killing workers makes the call
+- A worker killed in the middle of a call (images, camera-side gradients, a recycled
+  iteration, whose lost part of the paths is recorded again): the task is re-run elsewhere
+  and the result is still bitwise the single-process one; a task that keeps killing workers makes the call
   raise DistributedError; the reduction refuses results that do not cover every submitted
   batch exactly once.
 """
@@ -229,6 +230,61 @@ def test_a_worker_killed_mid_call_is_replaced_and_the_result_is_complete(client,
     assert out.attrs["tasks"] == 8 and out.attrs["batches"] == 32
     assert same(out.radiance.values, ref.radiance.values)
     assert same(out.radiance_std_error.values, ref.radiance_std_error.values)
+    client.wait_for_workers(2)
+
+
+def _kill_in(kinds: tuple[str, ...], marker: str):
+    """Kill the worker running the first task of one of ``kinds`` past the call's first."""
+    once = _kill_once(marker)
+
+    def hook(kind, start):
+        if kind in kinds:
+            once(kind, start if kind != "replay" else 1)
+
+    return hook
+
+
+@pytest.mark.parametrize("call", ["sm", "drt", "replay"])
+def test_a_worker_killed_in_a_gradient_or_a_recycled_iteration_is_replaced_bitwise(
+        client, tmp_path, call):
+    """Sample matching and DRT gradients (each batch traced again elsewhere), and a recycled
+    iteration whose worker dies with its part of the stored paths (the part recorded again
+    from its seeds on a live worker, then replayed): bitwise the single-process result."""
+    medium, scene = gradient_medium(), gradient_scene()
+    marker = str(tmp_path / "killed")
+    if call == "replay":
+        w = weights_for(scene)
+        local = Recycler(scene, photons=3_200, policy=FixedPeriod(2), seed=3)
+        remote = DistributedRecycler(scene, client=client, photons=3_200,
+                                     policy=FixedPeriod(2), seed=3)
+
+        def evaluate(recycler, t):
+            return recycler.evaluate(scaled(medium, 1.0 + 0.03 * t),
+                                     residual=lambda images: w * images.radiance.values)
+
+        for recycler in (local, remote):
+            evaluate(recycler, 0)  # records the paths
+        ref = evaluate(local, 1)
+        client.run(_set_hook, _kill_in(("replay",), marker))
+        try:
+            out = evaluate(remote, 1)  # replays them: a worker dies with its part
+        finally:
+            client.run(_set_hook, None)
+        assert not out.info["resampled"]
+        assert same(out.images.radiance.values, ref.images.radiance.values)
+        assert same(out.gradient, ref.gradient)
+    else:
+        estimate = {"sm": sample_matching_gradient, "drt": drt_gradient}[call]
+        run = dict(samples_per_pixel=64, seed=4, batches=8)
+        ref = estimate(medium, scene, pixel_weights(), **run)
+        client.run(_set_hook, _kill_in(("camera-gradient",), marker))
+        try:
+            out = estimate(medium, scene, pixel_weights(), **run,
+                           executor=DaskExecutor(client, batches_per_task=2))
+        finally:
+            client.run(_set_hook, None)
+        assert same(out[0], ref[0]) and same(out[1], ref[1])
+    assert os.path.exists(marker)  # a worker did die during the call
     client.wait_for_workers(2)
 
 

@@ -112,10 +112,15 @@ class DistributedPathStore:
 
     def __init__(self, ex, scene: Scene, parts: list[tuple[int, int, object]], summaries,
                  *, edges, seed: int, batches: int, per_batch: int, rr_depth: int,
-                 rr_survival: float, record_bytes: int, record_time: float):
+                 rr_survival: float, record_bytes: int, record_time: float,
+                 recorded_from: tuple = ()):
         self.executor = ex
         self.scene = scene
         self.parts = parts  # (first batch, batches, future of the part's PathStore)
+        # the futures of the medium and scene the parts were recorded from, held as long as
+        # the parts: a part lost with its worker is recorded again from them (released, the
+        # scheduler would forget them and the lost part could not be recomputed)
+        self.recorded_from = recorded_from
         self.summaries = summaries
         self.edges = edges
         self.seed = seed
@@ -175,7 +180,7 @@ class DistributedPathStore:
             ex, scene, parts, summaries, edges=tuple(np.asarray(e, float) for e in edges),
             seed=int(seed), batches=int(batches), per_batch=per_batch, rr_depth=int(rr_depth),
             rr_survival=float(rr_survival), record_bytes=sent + more,
-            record_time=time.perf_counter() - t0,
+            record_time=time.perf_counter() - t0, recorded_from=(medium_future, scene_future),
         )
 
     # -- sizes ------------------------------------------------------------------------------
@@ -206,6 +211,7 @@ class DistributedPathStore:
         """Free the parts on the workers."""
         self.executor.client.cancel([f for _, _, f in self.parts])
         self.parts = []
+        self.recorded_from = ()
 
     # -- operations -------------------------------------------------------------------------
 
