@@ -32,17 +32,23 @@ def _plt():
     return plt
 
 
+#: Photons of the report's re-render of a result, at most.
+RENDER_PHOTONS = 1_000_000
+
+
 def write_report(
     result: xr.Dataset,
     directory: str | Path,
     *,
     truth: xr.Dataset | None = None,
     measurements: xr.Dataset | None = None,
-    render_photons: int = 1_000_000,
+    render_photons: int | None = None,
     backend: str = "cpu",
 ) -> Path:
     """Write figures and ``summary.md`` for a retrieval result; returns the summary path.
-    With ``measurements``, the result is re-rendered (``render_photons`` photons) on
+    With ``measurements``, the result is re-rendered (``render_photons`` photons; default
+    :data:`RENDER_PHOTONS`, or the measurements' own photons where they record fewer: a
+    re-render more precise than the images it is compared to adds nothing) on
     ``backend`` (:mod:`cloudct.mc.backend`) for the images' comparison; with the ``truth``
     as well, epsilon is split by the true cloud's optical distance from its lit and viewed
     boundary in the measurements' scene
@@ -139,6 +145,9 @@ def write_report(
         from cloudct.mc.render import render
         from cloudct.mc.scene import Scene
 
+        if render_photons is None:
+            recorded = measurements.attrs.get("photons", RENDER_PHOTONS)
+            render_photons = int(min(RENDER_PHOTONS, recorded))
         images = render(result, Scene.from_dataset(measurements), photons=render_photons,
                         progress=False, backend=backend)
         rendered = images["radiance"].values
