@@ -50,7 +50,7 @@ import xarray as xr
 
 from cloudct.mc.cameras import cameras_from_dataset
 from cloudct.mc.render import RADIANCE_UNITS, default_method, render
-from cloudct.mc.scene import Scene, single_cloud_scene
+from cloudct.mc.scene import Scene, single_cloud_scene_of
 from cloudct.medium import (
     MediumError,
     cell_edges,
@@ -66,6 +66,8 @@ from cloudct.units import units_problem
 
 #: Default number of photons of a synthetic measurement (forward estimator).
 DEFAULT_PHOTONS = 10_000_000
+#: Batches of a synthetic measurement's render (for its standard errors).
+DEFAULT_BATCHES = 32
 #: Default reference radiance of the noise model: a white Lambertian plate facing the sun.
 WHITE_PLATE_RADIANCE = 1.0 / math.pi
 
@@ -138,7 +140,7 @@ def synthesize_measurements(
     noise_seed: int | None = None,
     wavelength: float = DEFAULT_WAVELENGTH,
     optics: str | None = None,
-    batches: int = 32,
+    batches: int = DEFAULT_BATCHES,
     progress: bool | None = None,
     backend: str = "cpu",
     method: str | None = None,
@@ -188,9 +190,7 @@ def synthesize_measurements(
         )
     edges = cell_edges(medium)
     if scene is None:
-        scene = single_cloud_scene(
-            np.array([e[0] for e in edges]), np.array([e[-1] for e in edges])
-        )
+        scene = single_cloud_scene_of(medium)
     if method is None:
         method = default_method(medium)
     if method not in ("forward", "combined"):

@@ -13,7 +13,9 @@ from cloudct.mc.backend import (
     device_description,
     resolve_backend,
 )
+from cloudct.mc.memory import check_memory, peak_bytes
 from cloudct.mc.render import single_cloud_medium
+from cloudct.mc.scene import Scene
 from cloudct.medium import load_medium
 from cloudct.optics import DEFAULT_OPTICS, OPTICS, with_optics, with_phase_truncation
 
@@ -97,3 +99,13 @@ def measured_optics(measurements: xr.Dataset, optics: str | None) -> str | None:
     """``optics`` if given, else the optics the measurements record (None if none known)."""
     recorded = measurements.attrs.get("optics")
     return optics if optics is not None else (recorded if recorded in OPTICS else None)
+
+
+def say_memory(what: str, medium: xr.Dataset, scene: Scene, batches: int,
+               gradient: bool) -> None:
+    """Print the memory ``what`` needs at its peak (:mod:`cloudct.mc.memory`: its per-batch
+    images, or gradients where ``gradient``), or refuse in one line where it cannot fit."""
+    pixels = sum(c.nrows * c.ncols for c in scene.cameras)
+    print(check_memory(what, peak_bytes(int(medium["cloud_extinction"].size), pixels,
+                                        batches, gradient)))
+

@@ -13,11 +13,18 @@ from cloudct.cli.options import (
     add_phase_truncation_option,
     chosen_backend,
     medium_from_options,
+    say_memory,
     truncated_as_asked,
 )
 from cloudct.distributed import close_client, connect, executor
 from cloudct.mc.render import METHODS, render, save_images, save_previews
-from cloudct.mc.scene import BOUNDARIES, PRESETS, build_scene, load_scene, single_cloud_scene
+from cloudct.mc.scene import (
+    BOUNDARIES,
+    PRESETS,
+    build_scene,
+    load_scene,
+    single_cloud_scene_of,
+)
 from cloudct.mc.scene_figure import save_scene_figure
 from cloudct.mc.sensors import domain_means
 from cloudct.medium import cell_edges
@@ -28,13 +35,7 @@ def _cli_render(args: argparse.Namespace) -> int:
     """``cloudct render``: images of a medium for a scene, to netCDF and PNG previews."""
     medium = truncated_as_asked(medium_from_options(args.medium, args.optics),
                                 args.phase_truncation)
-    if args.scene is None:
-        edges = cell_edges(medium)
-        scene = single_cloud_scene(
-            np.array([e[0] for e in edges]), np.array([e[-1] for e in edges])
-        )
-    else:
-        scene = load_scene(args.scene)
+    scene = single_cloud_scene_of(medium) if args.scene is None else load_scene(args.scene)
     output = Path(args.output)
     if output.exists() and not args.overwrite:
         raise FileExistsError(f"{output} exists (use --overwrite)")
@@ -45,6 +46,7 @@ def _cli_render(args: argparse.Namespace) -> int:
     spread = None if client is None else executor(client)
     if args.scheduler:
         backend = args.backend
+    say_memory("render", medium, scene, args.batches, gradient=False)
     try:
         # compile (or load from the numba cache) first, so that the reported rate is the
         # render's

@@ -21,6 +21,7 @@ from cloudct.cli.options import (
     chosen_backend,
     measured_optics,
     medium_from_options,
+    say_memory,
 )
 from cloudct.cli.run_options import (
     OPTION_NAMES,
@@ -31,7 +32,7 @@ from cloudct.cli.run_options import (
 )
 from cloudct.distributed import close_client, connect
 from cloudct.les import bundled_single_cloud, seed_paper_cloud_field
-from cloudct.mc.scene import build_scene
+from cloudct.mc.scene import Scene, build_scene
 from cloudct.measurements import load_measurements, save_measurements, synthesize_measurements
 from cloudct.medium import cell_edges, load_medium, save_medium
 from cloudct.netcdf import load_netcdf, require_variables, save_netcdf
@@ -53,6 +54,7 @@ from cloudct.retrieval.config_file import (
     toml_value,
 )
 from cloudct.retrieval.loop import Retrieval
+from cloudct.retrieval.loss import BATCHES
 from cloudct.retrieval.photon_budget import target_seconds
 from cloudct.retrieval.priors import Prior, prior_text
 from cloudct.retrieval.report import write_report
@@ -165,6 +167,7 @@ def _retrieve(
 ) -> tuple[Retrieval, xr.Dataset]:
     """``cloudct retrieve``'s run from its start (carved or read) or its checkpoint."""
     initial = _initial_medium(measurements, args.init, args.medium, args.optics, backend)
+    say_memory("retrieve", initial, Scene.from_dataset(measurements), BATCHES, gradient=True)
     client = connect(args.scheduler, args.workers, backend=backend)
     if client is not None:
         print(f"tracing on {client}")
@@ -286,6 +289,7 @@ def _demo_into(args: argparse.Namespace, demo: DemoScene, config: RetrievalConfi
         print("2/4 space carving ...")
         initial = initial_medium(carve(measurements, truth, backend=backend), truth)
         save_medium(initial, out / "init.nc", overwrite=True)
+        say_memory("retrieve", initial, scene, BATCHES, gradient=True)
         each = (f"photons fitted to {target_seconds(config.iteration_seconds, backend):g} s "
                 "per iteration"
                 if config.photons == AUTO else f"{config.photons} photons each")

@@ -10,9 +10,11 @@ from cloudct.cli.options import (
     add_optics_option,
     chosen_backend,
     medium_from_options,
+    say_memory,
 )
-from cloudct.mc.scene import load_scene
+from cloudct.mc.scene import load_scene, single_cloud_scene_of
 from cloudct.measurements import (
+    DEFAULT_BATCHES,
     DEFAULT_PHOTONS,
     NoiseModel,
     save_measurements,
@@ -26,13 +28,14 @@ def _cli_synth(args: argparse.Namespace) -> int:
     if args.read_noise is not None and args.noise_electrons is None:
         raise ValueError("--read-noise needs --noise-electrons (the signal level)")
     medium = medium_from_options(args.medium, args.optics)
-    scene = None if args.scene is None else load_scene(args.scene)
+    scene = single_cloud_scene_of(medium) if args.scene is None else load_scene(args.scene)
     noise = None
     if args.noise_electrons is not None:
         noise = NoiseModel(args.noise_electrons, read_noise=args.read_noise or 0.0)
     output = Path(args.output)
     if output.exists() and not args.overwrite:
         raise FileExistsError(f"{output} exists (use --overwrite)")
+    say_memory("synth", medium, scene, DEFAULT_BATCHES, gradient=False)
     ds = synthesize_measurements(
         medium, scene, photons=args.photons, seed=args.seed, noise=noise,
         wavelength=args.wavelength, optics=args.optics, progress=None,

@@ -24,6 +24,7 @@ from cloudct.mc.cameras import (
     ring_cameras,
 )
 from cloudct.mc.sun import Sun
+from cloudct.medium import cell_edges
 from cloudct.netcdf import InputFileError, load_netcdf
 
 BOUNDARIES = ("open", "periodic")
@@ -93,6 +94,13 @@ def single_cloud_scene(box_min: np.ndarray, box_max: np.ndarray) -> Scene:
     box centre (zenith + ring at 29 degrees), sun at the zenith, open boundaries
     (:func:`build_scene`'s ``single-cloud`` preset)."""
     return build_scene(box_min, box_max, preset="single-cloud")
+
+
+def single_cloud_scene_of(medium: xr.Dataset) -> Scene:
+    """:func:`single_cloud_scene` around the box of ``medium``'s grid: the scene of
+    ``render`` and ``synth`` when none is given."""
+    edges = cell_edges(medium)
+    return single_cloud_scene(np.array([e[0] for e in edges]), np.array([e[-1] for e in edges]))
 
 
 #: Named camera geometries: ring zenith angle [deg], distance from the box centre [km]

@@ -104,6 +104,10 @@ def cross_loss(
     return 0.5 * float(np.sum(weights * (image_a - measured) * (image_b - measured)))
 
 
+#: Batches of every estimate of a retrieval's loss and gradient.
+BATCHES = 32
+
+
 def loss_and_gradient(
     medium: xr.Dataset,
     measurements: xr.Dataset,
@@ -115,7 +119,7 @@ def loss_and_gradient(
     mask: np.ndarray | None = None,
     estimator: str = "score",
     pixel_sampling: str = "uniform",
-    batches: int = 32,
+    batches: int = BATCHES,
     progress: bool | None = False,
     backend: str = "cpu",
     client=None,
