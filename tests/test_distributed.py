@@ -8,9 +8,9 @@
   iterations and only media, residuals and results come back.
 - A worker killed in the middle of a call (images, camera-side gradients, a recycled
   iteration, whose lost part of the paths is recorded again): the task is re-run elsewhere
-  and the result is still bitwise the single-process one; a task that keeps killing workers makes the call
-  raise DistributedError; the reduction refuses results that do not cover every submitted
-  batch exactly once.
+  and the result is still bitwise the single-process one; a task that keeps killing workers
+  makes the call raise DistributedError; the reduction refuses results that do not cover
+  every submitted batch exactly once.
 """
 
 from __future__ import annotations

@@ -53,9 +53,8 @@ def test_a_run_that_cannot_fit_is_refused_in_one_line(tmp_path, inputs, capsys, 
     assert main(["retrieve", *inputs, *SMALL, "--iterations", "1", "-o", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert re.fullmatch(r"cloudct retrieve: error: retrieve: about \d+ KiB of memory at its "
-                        r"peak, beyond this process's [\d.]+ GiB, but only 1 KiB is free: use "
-                        r"fewer batches \(--batches\), a coarser grid, or a machine with more "
-                        r"memory", err), err
+                        r"peak, beyond this process's [\d.]+ GiB, but only 1 KiB is free: use a "
+                        r"coarser grid, or a machine with more memory", err), err
     assert not out.exists()
     monkeypatch.setattr(memory, "available_bytes", lambda: 2**40)
     assert main(["retrieve", *inputs, *SMALL, "--iterations", "1", "-o", str(out)]) == 0

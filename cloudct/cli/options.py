@@ -102,10 +102,11 @@ def measured_optics(measurements: xr.Dataset, optics: str | None) -> str | None:
 
 
 def say_memory(what: str, medium: xr.Dataset, scene: Scene, batches: int,
-               gradient: bool) -> None:
+               gradient: bool, way_out: str = "a coarser grid") -> None:
     """Print the memory ``what`` needs at its peak (:mod:`cloudct.mc.memory`: its per-batch
-    images, or gradients where ``gradient``), or refuse in one line where it cannot fit."""
+    images, or gradients where ``gradient``), or refuse in one line, with ``way_out``,
+    where it cannot fit."""
     pixels = sum(c.nrows * c.ncols for c in scene.cameras)
-    print(check_memory(what, peak_bytes(int(medium["cloud_extinction"].size), pixels,
-                                        batches, gradient)))
+    need = peak_bytes(int(medium["cloud_extinction"].size), pixels, batches, gradient)
+    print(check_memory(what, need, way_out))
 

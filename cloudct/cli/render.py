@@ -46,7 +46,8 @@ def _cli_render(args: argparse.Namespace) -> int:
     spread = None if client is None else executor(client)
     if args.scheduler:
         backend = args.backend
-    say_memory("render", medium, scene, args.batches, gradient=False)
+    say_memory("render", medium, scene, args.batches, gradient=False,
+               way_out="fewer batches (--batches), fewer or smaller images, a coarser grid")
     try:
         # compile (or load from the numba cache) first, so that the reported rate is the
         # render's

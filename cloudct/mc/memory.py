@@ -58,9 +58,10 @@ class NotEnoughMemory(ValueError):
     """An estimate whose arrays cannot fit in the memory free."""
 
 
-def check_memory(what: str, need: int, available: int | None = None) -> str:
+def check_memory(what: str, need: int, way_out: str = "a coarser grid",
+                 available: int | None = None) -> str:
     """The line that says ``what`` needs about ``need`` bytes beyond this process's memory
-    and what is free; :class:`NotEnoughMemory` (with the way out) where it does not fit."""
+    and what is free; :class:`NotEnoughMemory` (with ``way_out``) where it does not fit."""
     free = available_bytes() if available is None else available
     line = (f"{what}: about {_gib(need)} of memory at its peak, beyond this process's "
             f"{_gib(resident_bytes())}")
@@ -68,8 +69,8 @@ def check_memory(what: str, need: int, available: int | None = None) -> str:
         return line + " (free memory unknown)"
     if need > free:
         raise NotEnoughMemory(
-            f"{line}, but only {_gib(free)} is free: use fewer batches (--batches), a coarser "
-            "grid, or a machine with more memory")
+            f"{line}, but only {_gib(free)} is free: use {way_out}, or a machine with more "
+            "memory")
     return f"{line}; {_gib(free)} free"
 
 
