@@ -107,6 +107,7 @@ def say_memory(what: str, medium: xr.Dataset, scene: Scene, batches: int,
     images, or gradients where ``gradient``), or refuse in one line, with ``way_out``,
     where it cannot fit."""
     pixels = sum(c.nrows * c.ncols for c in scene.cameras)
-    need = peak_bytes(int(medium["cloud_extinction"].size), pixels, batches, gradient)
+    voxels = medium.sizes["x"] * medium.sizes["y"] * medium.sizes["z"]
+    need = peak_bytes(voxels, pixels, batches, gradient)
     print(check_memory(what, need, way_out))
 
