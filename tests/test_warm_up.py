@@ -4,6 +4,7 @@ the markers that say a task ran, the background processes and the command lines.
 from __future__ import annotations
 
 import pytest
+import xarray as xr
 from test_config import SMALL, inputs  # noqa: F401 - the fixture
 
 from cloudct.cli import main
@@ -65,6 +66,7 @@ def test_retrieve_compiles_ahead_what_the_cache_lacks_and_says_so(tmp_path, inpu
     # the start is a file, not a carved hull: the forward render compiles ahead too
     assert "compiling ahead, in other processes: render:forward, gradient:sm\n" in printed
     assert "compiled ahead in" in printed and out.exists()
+    assert xr.load_dataset(out).attrs["compile_ahead_s"] > 0.0
 
 
 def test_cache_warm_runs_the_tasks_named(capsys):

@@ -91,10 +91,20 @@ def _compile_ahead(config: RetrievalConfig, backend: str, optics: str | None,
     return ahead
 
 
-def _wait_for(ahead: BackgroundWarmUp) -> None:
-    """Wait for :func:`_compile_ahead`'s processes before the first iteration."""
+def _wait_for(ahead: BackgroundWarmUp) -> float:
+    """Wait for :func:`_compile_ahead`'s processes before the first iteration; returns the
+    seconds since they started (0 when none ran)."""
+    seconds = ahead.wait()
     if ahead.tasks:
-        print(f"compiled ahead in {ahead.wait():.0f} s")
+        print(f"compiled ahead in {seconds:.0f} s")
+    return seconds
+
+
+def _with_ahead(result: xr.Dataset, seconds: float) -> xr.Dataset:
+    """``result`` with the seconds its kernels compiled ahead (attribute
+    ``compile_ahead_s``: wall time beside the loading and carving, not the iterations')."""
+    result.attrs["compile_ahead_s"] = float(seconds)
+    return result
 
 
 #: The demo's run settings (``cloudct demo``; ``cloudct retrieve --config`` reads it too).
@@ -185,9 +195,8 @@ def _retrieve(
                                            phase_truncation(initial))
             run = Retrieval(measurements, initial, config_from_settings(settings), truth=truth,
                             **where)
-        if ahead is not None:
-            _wait_for(ahead)
-        return run, run.run(checkpoint=checkpoint, progress=None)
+        ahead_seconds = 0.0 if ahead is None else _wait_for(ahead)
+        return run, _with_ahead(run.run(checkpoint=checkpoint, progress=None), ahead_seconds)
     finally:
         if client is not None:
             close_client(client)
@@ -295,8 +304,9 @@ def _demo_into(args: argparse.Namespace, demo: DemoScene, config: RetrievalConfi
                 if config.photons == AUTO else f"{config.photons} photons each")
         print(f"3/4 retrieving ({config.iterations} iterations, {each}) ...")
         run = Retrieval(measurements, initial, config, truth=truth, backend=backend)
-        _wait_for(ahead)
-        result = run.run(checkpoint=out / "checkpoint.nc", progress=None)
+        ahead_seconds = _wait_for(ahead)
+        result = _with_ahead(run.run(checkpoint=out / "checkpoint.nc", progress=None),
+                             ahead_seconds)
         save_netcdf(result, out / "result.nc", overwrite=True)
     except RunStopped as stop:  # the retrieval goes on as cloudct retrieve, then the report
         files = {name: str(out / name) for name in ("measurements.nc", "init.nc", "truth.nc",

@@ -243,7 +243,10 @@ def _compiling_text(result: xr.Dataset) -> str:
     if "log_compile_seconds" not in result:
         return "compile time not recorded"
     seconds = np.nansum(result["log_compile_seconds"].values)
-    return f"{seconds:.0f} s of it compiling or loading kernels"
+    ahead = float(result.attrs.get("compile_ahead_s", 0.0))
+    text = f"{seconds:.0f} s of it compiling or loading kernels"
+    return text + (f"; {ahead:.0f} s compiling ahead, beside the loading and carving"
+                   if ahead > 0 else "")
 
 
 def _priors_text(config: dict) -> str:
