@@ -85,6 +85,8 @@ def exclusive(path: str | os.PathLike) -> Iterator[None]:
     import fcntl  # POSIX only, as the command line is
 
     path = Path(path)
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"the folder of {path} does not exist (create it first)")
     lock = path.with_name(f".{path.name}.lock")
     with open(lock, "a+") as f:
         try:

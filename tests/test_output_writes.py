@@ -87,3 +87,10 @@ def test_a_second_run_on_the_same_output_is_refused_naming_the_first(tmp_path, c
     # the first process gone, its lock went with it: the run goes on to its own errors
     assert main(["retrieve", str(tmp_path / "measurements.nc"), "-o", str(out)]) == 2
     assert "measurement file" in capsys.readouterr().err and not out.exists()
+
+
+def test_an_output_in_a_missing_folder_is_refused_before_any_work(tmp_path, capsys):
+    out = tmp_path / "no" / "such" / "r.nc"
+    assert main(["retrieve", str(tmp_path / "measurements.nc"), "-o", str(out)]) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"cloudct retrieve: error: the folder of {out} does not exist (create it first)")
