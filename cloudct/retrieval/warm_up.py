@@ -71,11 +71,15 @@ def pending(tasks: Iterable[str], backend: str, optics: str = DEFAULT_OPTICS) ->
     return [t for t in dict.fromkeys(tasks) if not _marker(t, backend, optics).exists()]
 
 
+def _check_task(name: str) -> None:
+    if name not in TASKS:
+        raise ValueError(f"warm-up task must be one of {TASKS}, got {name!r}")
+
+
 def run_task(name: str, backend: str = "cpu", optics: str = DEFAULT_OPTICS) -> float:
     """Run the warm-up task ``name`` (one of :data:`TASKS`) in this process on ``backend``;
     returns the seconds it spent compiling or loading kernels (the rest is tracing)."""
-    if name not in TASKS:
-        raise ValueError(f"warm-up task must be one of {TASKS}, got {name!r}")
+    _check_task(name)
     medium, scene = small_problem(optics)
     kind, _, which = name.partition(":")
     with compile_clock() as clock:
@@ -126,8 +130,7 @@ def warm_up(tasks: Iterable[str] = TASKS, *, backend: str = "cpu",
     most the CPUs this process may use); returns each task's compile (or load) seconds."""
     tasks = list(dict.fromkeys(tasks))
     for name in tasks:
-        if name not in TASKS:
-            raise ValueError(f"warm-up task must be one of {TASKS}, got {name!r}")
+        _check_task(name)
     pool = _pool(_jobs(tasks, jobs))
     try:
         results = {name: pool.apply_async(run_task, (name, backend, optics)) for name in tasks}
