@@ -57,12 +57,30 @@ cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
 
 @pytest.fixture(scope="module")
-def client():
+def kernels_cached() -> None:
     # compile (or load from the numba cache) the worker-only kernels here, so that the two
     # workers load them from the cache instead of both compiling them
     record_part(gradient_medium(), gradient_scene(), seed=0, per_batch=1, start=1, count=2)
+
+
+def _two_workers():
     with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
-        c = local_cluster(2, threads=1)
+        return local_cluster(2, threads=1)
+
+
+@pytest.fixture(scope="module")
+def client(kernels_cached):
+    c = _two_workers()
+    yield c
+    close_client(c)
+
+
+@pytest.fixture
+def own_client(kernels_cached):
+    """Two workers of its own for a test that kills one: the next test does not wait for
+    its replacement (a nanny slow to restart a worker on busy cores once hung the module's
+    cluster)."""
+    c = _two_workers()
     yield c
     close_client(c)
 
@@ -216,21 +234,44 @@ def _set_hook(hook):
     batches.FAULT_HOOK = hook
 
 
-def test_a_worker_killed_mid_call_is_replaced_and_the_result_is_complete(client, tmp_path):
+def test_a_worker_killed_mid_call_is_replaced_and_the_result_is_complete(own_client, tmp_path):
     medium, scene = gradient_medium(), gradient_scene()
     ref = render(medium, scene, photons=20_000, seed=9, progress=False)
     marker = str(tmp_path / "killed")
-    client.run(_set_hook, _kill_once(marker))
+    own_client.run(_set_hook, _kill_once(marker))
     try:
         out = render(medium, scene, photons=20_000, seed=9, progress=False,
-                     executor=DaskExecutor(client, batches_per_task=4))
+                     executor=DaskExecutor(own_client, batches_per_task=4))
     finally:
-        client.run(_set_hook, None)
+        own_client.run(_set_hook, None)
     assert os.path.exists(marker)  # a worker did die during the call
     assert out.attrs["tasks"] == 8 and out.attrs["batches"] == 32
     assert same(out.radiance.values, ref.radiance.values)
     assert same(out.radiance_std_error.values, ref.radiance_std_error.values)
-    client.wait_for_workers(2)
+
+
+def test_paths_lost_with_every_worker_are_recorded_again_bitwise(own_client):
+    """Every worker restarted between a recording and a recycled iteration: the parts, and
+    the medium and scene they were recorded from, are gone with them; the store records
+    them again from the medium and scene it keeps (the same paths), and the iteration is
+    the single-process one, bitwise."""
+    medium, scene = gradient_medium(), gradient_scene()
+    w = weights_for(scene)
+    local = Recycler(scene, photons=3_200, policy=FixedPeriod(2), seed=5)
+    remote = DistributedRecycler(scene, client=own_client, photons=3_200, policy=FixedPeriod(2),
+                                 seed=5)
+    outs = []
+    for recycler in (local, remote):
+        for t in (0, 1):
+            if recycler is remote and t == 1:
+                own_client.restart_workers(list(own_client.scheduler_info()["workers"]))
+                own_client.wait_for_workers(2)
+            outs.append(recycler.evaluate(scaled(medium, 1.0 + 0.03 * t),
+                                          residual=lambda images: w * images.radiance.values))
+    ref, out = outs[1], outs[3]
+    assert not out.info["resampled"]
+    assert same(out.images.radiance.values, ref.images.radiance.values)
+    assert same(out.gradient, ref.gradient)
 
 
 def _kill_in(kinds: tuple[str, ...], marker: str):
@@ -246,7 +287,7 @@ def _kill_in(kinds: tuple[str, ...], marker: str):
 
 @pytest.mark.parametrize("call", ["sm", "drt", "replay"])
 def test_a_worker_killed_in_a_gradient_or_a_recycled_iteration_is_replaced_bitwise(
-        client, tmp_path, call):
+        own_client, tmp_path, call):
     """Sample matching and DRT gradients (each batch traced again elsewhere), and a recycled
     iteration whose worker dies with its part of the stored paths (the part recorded again
     from its seeds on a live worker, then replayed): bitwise the single-process result."""
@@ -255,7 +296,7 @@ def test_a_worker_killed_in_a_gradient_or_a_recycled_iteration_is_replaced_bitwi
     if call == "replay":
         w = weights_for(scene)
         local = Recycler(scene, photons=3_200, policy=FixedPeriod(2), seed=3)
-        remote = DistributedRecycler(scene, client=client, photons=3_200,
+        remote = DistributedRecycler(scene, client=own_client, photons=3_200,
                                      policy=FixedPeriod(2), seed=3)
 
         def evaluate(recycler, t):
@@ -265,11 +306,11 @@ def test_a_worker_killed_in_a_gradient_or_a_recycled_iteration_is_replaced_bitwi
         for recycler in (local, remote):
             evaluate(recycler, 0)  # records the paths
         ref = evaluate(local, 1)
-        client.run(_set_hook, _kill_in(("replay",), marker))
+        own_client.run(_set_hook, _kill_in(("replay",), marker))
         try:
             out = evaluate(remote, 1)  # replays them: a worker dies with its part
         finally:
-            client.run(_set_hook, None)
+            own_client.run(_set_hook, None)
         assert not out.info["resampled"]
         assert same(out.images.radiance.values, ref.images.radiance.values)
         assert same(out.gradient, ref.gradient)
@@ -277,15 +318,14 @@ def test_a_worker_killed_in_a_gradient_or_a_recycled_iteration_is_replaced_bitwi
         estimate = {"sm": sample_matching_gradient, "drt": drt_gradient}[call]
         run = dict(samples_per_pixel=64, seed=4, batches=8)
         ref = estimate(medium, scene, pixel_weights(), **run)
-        client.run(_set_hook, _kill_in(("camera-gradient",), marker))
+        own_client.run(_set_hook, _kill_in(("camera-gradient",), marker))
         try:
             out = estimate(medium, scene, pixel_weights(), **run,
-                           executor=DaskExecutor(client, batches_per_task=2))
+                           executor=DaskExecutor(own_client, batches_per_task=2))
         finally:
-            client.run(_set_hook, None)
+            own_client.run(_set_hook, None)
         assert same(out[0], ref[0]) and same(out[1], ref[1])
     assert os.path.exists(marker)  # a worker did die during the call
-    client.wait_for_workers(2)
 
 
 class _KillAlways(WorkerPlugin):
@@ -303,17 +343,16 @@ class _KillAlways(WorkerPlugin):
         batches.FAULT_HOOK = None
 
 
-def test_a_task_that_keeps_killing_workers_fails_the_call_clearly(client):
+def test_a_task_that_keeps_killing_workers_fails_the_call_clearly(own_client):
     medium, scene = gradient_medium(), gradient_scene()
-    client.register_plugin(_KillAlways())
+    own_client.register_plugin(_KillAlways())
     try:
         with pytest.raises(DistributedError, match="no partial result"):
             render(medium, scene, photons=2_000, seed=1, progress=False,
-                   executor=DaskExecutor(client, batches_per_task=32))
+                   executor=DaskExecutor(own_client, batches_per_task=32))
     finally:
-        client.unregister_worker_plugin(_KillAlways.name)
-        client.run(_set_hook, None)
-    client.wait_for_workers(2)
+        own_client.unregister_worker_plugin(_KillAlways.name)
+        own_client.run(_set_hook, None)
 
 
 def _wait_a_moment():

@@ -88,7 +88,9 @@ class DaskExecutor:
 
     def share(self, obj: Any, *, cache: bool = False) -> tuple[Any, int]:
         """Scatter ``obj`` to every worker once; returns ``(future, bytes sent)``. With
-        ``cache``, an object of the same content scattered before is re-used (0 bytes)."""
+        ``cache``, an object of the same content scattered before is re-used, copied to the
+        workers that lack it (a worker that died took its copy; a new one has none): the
+        object has no lineage, so it must outlive any one worker."""
         key = None
         if cache:
             from dask.base import tokenize
@@ -96,7 +98,8 @@ class DaskExecutor:
             key = tokenize(obj)
             if key in self._cache and self._cache[key][0].status == "finished":
                 self._cache.move_to_end(key)
-                return self._cache[key][0], 0
+                future = self._cache[key][0]
+                return future, self.everywhere(future, nbytes(obj))
         workers = self.workers
         [future] = self.client.scatter([obj], broadcast=True, hash=False)
         sent = nbytes(obj) * workers
@@ -105,6 +108,17 @@ class DaskExecutor:
             while len(self._cache) > self._cache_size:
                 self._cache.popitem(last=False)
         return future, sent
+
+    def everywhere(self, future, size: int) -> int:
+        """Copy the data of ``future`` (shared, ``size`` bytes) to the workers connected now
+        that lack it (one that died took its copy; its replacement has none); returns the
+        bytes sent. Scattered data has no lineage: held by every worker, it outlives any one
+        of them."""
+        holders = set(self.client.who_has([future]).get(future.key, ()))
+        lacking = set(self.addresses()) - holders
+        if lacking:
+            self.client.replicate([future])
+        return size * len(lacking)
 
     def submit(self, func, *args, key: str, **kwargs):
         """Submit one task (impure: it always runs)."""

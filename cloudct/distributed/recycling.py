@@ -110,28 +110,25 @@ class DistributedPathStore:
     the operations of :mod:`cloudct.recycling.replay` as methods, with the same results.
     """
 
-    def __init__(self, ex, scene: Scene, parts: list[tuple[int, int, object]], summaries,
-                 *, edges, seed: int, batches: int, per_batch: int, rr_depth: int,
-                 rr_survival: float, record_bytes: int, record_time: float,
-                 recorded_from: tuple = ()):
+    def __init__(self, ex, medium: xr.Dataset, scene: Scene, *, batches: int,
+                 options: dict):
+        """Not recorded yet (:meth:`record` makes one): ``options`` are
+        :func:`record_part`'s keywords but ``start`` and ``count``."""
         self.executor = ex
         self.scene = scene
-        self.parts = parts  # (first batch, batches, future of the part's PathStore)
-        # the futures of the medium and scene the parts were recorded from, held as long as
-        # the parts: a part lost with its worker is recorded again from them (released, the
-        # scheduler would forget them and the lost part could not be recomputed)
-        self.recorded_from = recorded_from
-        self.summaries = summaries
-        self.edges = edges
-        self.seed = seed
-        self.batches = batches
-        self.per_batch = per_batch
-        self.rr_depth = rr_depth
-        self.rr_survival = rr_survival
-        self.info = {"record_time": record_time, "bytes_to_workers": record_bytes}
-        storages = sorted({s["storage"] for s in summaries})
-        self.storage = storages[0] if len(storages) == 1 else "mixed"
-        self.sorted = all(s["sorted"] for s in summaries)
+        self.edges = tuple(np.asarray(e, float) for e in cell_edges(medium))
+        self.batches = int(batches)
+        self.options = options
+        self.seed, self.per_batch = options["seed"], options["per_batch"]
+        self.rr_depth, self.rr_survival = options["rr_depth"], options["rr_survival"]
+        # (first batch, batches, future of the part's PathStore, None before recording)
+        self.parts = [(start, count, None) for start, count in ex.ranges(self.batches)]
+        # the medium and scene the parts were recorded from and their futures, held as long
+        # as the parts: the scheduler records a part lost with its worker again from the
+        # futures; should they be lost too (scattered data has no lineage, and Dask keeps
+        # one copy of data no task waits for), the parts are recorded again from these
+        self.recorded_from = ((medium, None), (scene, None))
+        self.summaries: list[dict] = []
 
     @classmethod
     def record(
@@ -151,37 +148,57 @@ class DistributedPathStore:
             raise ValueError(f"storage must be one of {STORAGE}, got {storage!r}")
         t0 = time.perf_counter()
         ex = executor(client)
-        edges = cell_edges(medium)
         kernel_inputs(medium, scene)  # validate here, not on the workers
-        per_batch = math.ceil(int(photons) / batches)
+        store = cls(ex, medium, scene, batches=int(batches), options=dict(
+            seed=int(seed), per_batch=math.ceil(int(photons) / batches), storage=storage,
+            memory_budget=memory_budget, sort=sort, rr_depth=int(rr_depth),
+            rr_survival=float(rr_survival), variable=variable,
+        ))
+        sent = store._record_parts()
+        tag = uuid.uuid4().hex[:8]
+        store.summaries = ex.gather([
+            ex.submit(part_summary, f, key=f"cloudct-paths-summary-{tag}-{s}")
+            for s, _, f in store.parts
+        ])
+        store._describe(sent, time.perf_counter() - t0)
+        return store
+
+    def _record_parts(self) -> int:
+        """Submit the recording of every part not held by a worker (all of them at first;
+        later, those lost with their workers together with their medium or scene): each
+        its batches, the paths of :func:`~cloudct.recycling.store.record_paths` with the
+        same seed. Returns the bytes sent."""
+        ex = self.executor
+        (medium, _), (scene, _) = self.recorded_from
         medium_future, sent = ex.share(medium, cache=True)
         scene_future, more = ex.share(scene, cache=True)
+        self.recorded_from = ((medium, medium_future), (scene, scene_future))
         tag = uuid.uuid4().hex[:8]
+        budget = self.options["memory_budget"]
         # the parts go to the workers in turn, so that each holds its share of the paths'
         # memory (the scheduler alone may queue them all on one worker); a loose
         # restriction: a part whose worker is gone is recorded elsewhere
         workers = ex.addresses()
         parts = []
-        for i, (start, count) in enumerate(ex.ranges(int(batches))):
-            budget = None if memory_budget is None else memory_budget * count / batches
-            future = ex.submit(
-                record_part, medium_future, scene_future, seed=int(seed), per_batch=per_batch,
-                start=start, count=count, storage=storage, memory_budget=budget, sort=sort,
-                rr_depth=int(rr_depth), rr_survival=float(rr_survival), variable=variable,
-                key=f"cloudct-paths-{tag}-{start}", workers=[workers[i % len(workers)]],
-                allow_other_workers=True,
-            )
+        for i, (start, count, future) in enumerate(self.parts):
+            if future is None or future.status != "finished":
+                future = ex.submit(
+                    record_part, medium_future, scene_future, start=start, count=count,
+                    **{**self.options, "memory_budget": None if budget is None
+                       else budget * count / self.batches},
+                    key=f"cloudct-paths-{tag}-{start}", workers=[workers[i % len(workers)]],
+                    allow_other_workers=True,
+                )
             parts.append((start, count, future))
-        summaries = ex.gather([
-            ex.submit(part_summary, f, key=f"cloudct-paths-summary-{tag}-{s}")
-            for s, _, f in parts
-        ])
-        return cls(
-            ex, scene, parts, summaries, edges=tuple(np.asarray(e, float) for e in edges),
-            seed=int(seed), batches=int(batches), per_batch=per_batch, rr_depth=int(rr_depth),
-            rr_survival=float(rr_survival), record_bytes=sent + more,
-            record_time=time.perf_counter() - t0, recorded_from=(medium_future, scene_future),
-        )
+        self.parts = parts
+        return sent + more
+
+    def _describe(self, sent: int, record_time: float) -> None:
+        """The store's sizes and kind from its parts' summaries."""
+        self.info = {"record_time": record_time, "bytes_to_workers": sent}
+        storages = sorted({s["storage"] for s in self.summaries})
+        self.storage = storages[0] if len(storages) == 1 else "mixed"
+        self.sorted = all(s["sorted"] for s in self.summaries)
 
     # -- sizes ------------------------------------------------------------------------------
 
@@ -215,18 +232,37 @@ class DistributedPathStore:
 
     # -- operations -------------------------------------------------------------------------
 
-    def _run(self, func, *args, desc: str) -> tuple[list, int]:
+    def _run(self, func, *args, desc: str) -> tuple[list, int, int]:
+        """The results of ``func`` on each part (where it is held), the bytes they moved
+        back, and the bytes sent to record lost parts again."""
         ex = self.executor
-        tag = uuid.uuid4().hex[:8]
-        # run each part's task where the part is held (a loose restriction: if its holder
-        # is gone, the part is recomputed and the task runs elsewhere)
-        holders = ex.client.who_has([f for _, _, f in self.parts])
-        futures = [
-            ex.submit(func, f, *args, key=f"cloudct-{desc}-{tag}-{s}",
-                      workers=list(holders.get(f.key, ())) or None, allow_other_workers=True)
-            for s, _, f in self.parts
-        ]
-        results = ex.gather(futures)
+
+        def submitted() -> list:
+            tag = uuid.uuid4().hex[:8]
+            # run each part's task where the part is held (a loose restriction: if its
+            # holder is gone, the part is recomputed and the task runs elsewhere)
+            try:
+                holders = ex.client.who_has([f for _, _, f in self.parts])
+            except Exception:  # a part lost meanwhile: placement is a hint only
+                holders = {}
+            return [ex.submit(func, f, *args, key=f"cloudct-{desc}-{tag}-{s}",
+                              **({"workers": list(holders[f.key]), "allow_other_workers": True}
+                                 if holders.get(f.key) else {}))
+                    for s, _, f in self.parts]
+
+        def lost() -> bool:
+            return any(f.status != "finished" for _, _, f in self.parts)
+
+        # parts lost with a worker, together with the medium or scene they were recorded
+        # from, are recorded again from those kept here (the same paths), once
+        sent = self._record_parts() if lost() else 0
+        try:
+            results = ex.gather(submitted())
+        except DistributedError:
+            if not lost():
+                raise
+            sent += self._record_parts()
+            results = ex.gather(submitted())
         if len(results) != len(self.parts):
             raise DistributedError("results of a recycled evaluation are missing")
         covered = [(s, n) for s, n, _ in self.parts]
@@ -237,14 +273,16 @@ class DistributedPathStore:
             expected += n
         if expected != self.batches:
             raise DistributedError(f"path store parts cover {expected} of {self.batches} batches")
-        return results, sum(nbytes(r) for r in results)
+        return results, sum(nbytes(r) for r in results), sent
 
     def log_weights(self, medium: xr.Dataset) -> tuple[np.ndarray, dict]:
         """The per-batch :func:`~cloudct.recycling.replay.weight_summary` of all paths'
         correction factors (batch order) and the bytes moved."""
         check_same_grid(self, cell_edges(medium))
         medium_future, sent = self.executor.share(medium, cache=True)
-        results, received = self._run(part_log_weights, medium_future, desc="log-weights")
+        results, received, more = self._run(part_log_weights, medium_future,
+                                            desc="log-weights")
+        sent += more
         summary = np.concatenate(results)
         if summary.shape[0] != self.batches:
             raise DistributedError(f"{summary.shape[0]} of {self.batches} batches came back")
@@ -265,10 +303,11 @@ class DistributedPathStore:
             residual = check_residual(residual, self.scene)
             residual_future, more = ex.share(residual)
             sent += more
-        results, received = self._run(
+        results, received, more = self._run(
             part_replay, medium_future, residual_future, float(mis_ratio),
             desc="recycled-images" if residual is None else "recycled-gradient",
         )
+        sent += more
         for (_, n, _), r in zip(self.parts, results, strict=True):
             if r[0].shape[0] != n:
                 raise DistributedError("a part returned the wrong number of batches")
