@@ -36,6 +36,10 @@ measured radiance is the total divided by the gain:
 
 Measured radiances are not clipped at zero (clipping would bias dark pixels), so read
 noise can give slightly negative values, as a dark-subtracted camera does.
+
+A measurement set may hold several bands (:mod:`cloudct.measurement_bands`, which
+stacks and synthesizes them): :func:`validate_measurements` checks them,
+:func:`band_measurements` takes one out; readers of one band refuse several.
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ import math
 import os
 import warnings
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 import xarray as xr
@@ -71,11 +76,21 @@ DEFAULT_BATCHES = 32
 #: Default reference radiance of the noise model: a white Lambertian plate facing the sun.
 WHITE_PLATE_RADIANCE = 1.0 / math.pi
 
-_IMAGE_DIMS = ("view", "row", "col")
-_SCENE_ATTRS = ("sun_zenith", "sun_azimuth", "boundary")
+IMAGE_DIMS = ("view", "row", "col")
+SCENE_ATTRS = ("sun_zenith", "sun_azimuth", "boundary")
 #: The units of the variables that carry them (docs/measurements.md).
 _UNITS = {"radiance": "1", "radiance_noise_std": "1", "radiance_std_error": "1",
           "position": "km", "lookat": "km", "fov": "degree"}
+
+
+#: The dimension of the bands of a multi-spectral measurement set; its coordinate is
+#: ``wavelength`` [micron].
+BAND = "band"
+_BAND_IMAGE_DIMS = (BAND, *IMAGE_DIMS)
+#: How near [micron] a band's wavelength must be to the one asked of :func:`band_measurements`.
+BAND_TOLERANCE = 0.01
+#: The camera variables (:func:`cloudct.mc.cameras.cameras_dataset`): one set for all bands.
+CAMERA_VARIABLES = ("position", "lookat", "up", "fov", "nrows", "ncols", "projection", "width")
 
 
 class MeasurementError(ValueError):
@@ -213,7 +228,7 @@ def synthesize_measurements(
     ds["radiance_std_error"].attrs["long_name"] = (
         "Monte Carlo standard error of the rendered (noise-free) radiance"
     )
-    ds["radiance_noise_std"] = (_IMAGE_DIMS, np.sqrt(noise_variance + mc_variance))
+    ds["radiance_noise_std"] = (IMAGE_DIMS, np.sqrt(noise_variance + mc_variance))
     ds["radiance_noise_std"].attrs.update(
         units=RADIANCE_UNITS,
         long_name="expected standard deviation of the measured radiance",
@@ -301,8 +316,13 @@ def noise_model_from_attrs(ds: xr.Dataset) -> NoiseModel | None:
     )
 
 
-def validate_measurements(ds: xr.Dataset) -> None:
+def validate_measurements(ds: xr.Dataset, *, bands: bool = False) -> None:
     """Check a measurement set; raise :class:`MeasurementError` naming the problem.
+
+    With ``bands`` a set with several bands (a ``band`` dimension) is checked as such
+    (:func:`_validate_bands`); without, as the readers that take one band (carving, the
+    retrieval) call it, such a set is refused with a line saying how to take one band out
+    (:func:`band_measurements`). A set without a ``band`` dimension is checked alike.
 
     Required: ``radiance`` over (view, row, col), finite or NaN (NaN marks a masked pixel;
     not all pixels masked); the camera variables (``position``, ``lookat``, ``up``, ``fov``,
@@ -312,17 +332,22 @@ def validate_measurements(ds: xr.Dataset) -> None:
     >= 0; ``wavelength``, when present, must be positive; a recorded transmittance model
     (``transmittance``, ``transmittance_mode``) must be one a medium may hold.
     """
+    if BAND in ds.dims:
+        if not bands:
+            raise MeasurementError(_one_band_only(ds))
+        _validate_bands(ds)
+        return
     if "radiance" not in ds:
         raise MeasurementError("measurements have no 'radiance' variable")
     radiance = ds["radiance"]
-    if radiance.dims != _IMAGE_DIMS:
-        raise MeasurementError(f"radiance must be over {_IMAGE_DIMS}, got {radiance.dims}")
+    if radiance.dims != IMAGE_DIMS:
+        raise MeasurementError(f"radiance must be over {IMAGE_DIMS}, got {radiance.dims}")
     values = radiance.values
     if np.any(np.isinf(values)):
         raise MeasurementError("radiance has infinite values (use NaN to mask a pixel)")
     if np.all(np.isnan(values)):
         raise MeasurementError("every radiance pixel is NaN (masked)")
-    missing = [a for a in _SCENE_ATTRS if a not in ds.attrs]
+    missing = [a for a in SCENE_ATTRS if a not in ds.attrs]
     if missing:
         raise MeasurementError(f"scene attributes missing: {', '.join(missing)}")
     for name, unit in _UNITS.items():
@@ -346,8 +371,8 @@ def validate_measurements(ds: xr.Dataset) -> None:
     for name in ("radiance_noise_std", "radiance_std_error"):
         if name in ds:
             error = ds[name].values
-            if ds[name].dims != _IMAGE_DIMS or error.shape != shape:
-                raise MeasurementError(f"{name} must be over {_IMAGE_DIMS} like the radiance")
+            if ds[name].dims != IMAGE_DIMS or error.shape != shape:
+                raise MeasurementError(f"{name} must be over {IMAGE_DIMS} like the radiance")
             if not np.all(np.isfinite(error)) or np.any(error < 0.0):
                 raise MeasurementError(f"{name} must be finite and >= 0")
     if "wavelength" in ds.attrs and not float(ds.attrs["wavelength"]) > 0.0:
@@ -359,18 +384,21 @@ def validate_measurements(ds: xr.Dataset) -> None:
 
 
 def save_measurements(ds: xr.Dataset, path: str | os.PathLike, overwrite: bool = False) -> None:
-    """Validate a measurement set and write it to netCDF-4 (moved into place when complete).
+    """Validate a measurement set (one band or several) and write it to netCDF-4 (moved into
+    place when complete).
 
     Raises:
         FileExistsError: ``path`` exists and ``overwrite`` is False.
         MeasurementError: ``ds`` is not a valid measurement set.
     """
-    validate_measurements(ds)
+    validate_measurements(ds, bands=True)
     save_netcdf(ds, path, overwrite=overwrite)
 
 
 def load_measurements(path: str | os.PathLike) -> xr.Dataset:
     """Read a measurement file fully into memory (the file is closed) and validate it.
+
+    A file with several bands is returned as it is: :func:`band_measurements` takes one out.
 
     Raises:
         FileNotFoundError: no such file.
@@ -378,13 +406,15 @@ def load_measurements(path: str | os.PathLike) -> xr.Dataset:
         MeasurementError: the file does not hold a valid measurement set (the message names
             the file).
     """
-    return load_netcdf(path, "measurement", validate_measurements)
+    return load_netcdf(path, "measurement", partial(validate_measurements, bands=True))
 
 
 def coarse_measurements(measurements: xr.Dataset, block: int) -> xr.Dataset:
     """Measurements of cameras with ``block`` x ``block`` times larger pixels: the block
     mean of the radiance is exactly the box-filtered radiance of the coarser pixel. The
     attributes (optics, noise model, transmittance) and a transmittance mode are kept."""
+    if BAND in measurements.dims:
+        raise MeasurementError(_one_band_only(measurements))
     if block == 1:
         return measurements
     scene = Scene.from_dataset(measurements)
@@ -402,3 +432,117 @@ def coarse_measurements(measurements: xr.Dataset, block: int) -> xr.Dataset:
     if "transmittance_mode" in measurements:
         ds["transmittance_mode"] = measurements["transmittance_mode"]
     return ds
+
+
+# --- several bands ----------------------------------------------------------------------
+
+
+def band_wavelengths(measurements: xr.Dataset) -> np.ndarray:
+    """The wavelengths [micron] of a measurement set's bands: its coordinate ``wavelength``
+    with several bands, else its one ``wavelength`` attribute (empty where it records none)."""
+    if BAND in measurements.dims and "wavelength" in measurements.variables:
+        return np.asarray(measurements["wavelength"].values, dtype=float)
+    if "wavelength" in measurements.attrs:
+        return np.array([float(measurements.attrs["wavelength"])])
+    return np.array([])
+
+
+def _listing(wavelengths) -> str:  # "0.672, 1.65, 2.13"
+    return ", ".join(f"{float(w):g}" for w in wavelengths)
+
+
+def _one_band_only(ds: xr.Dataset) -> str:
+    """The refusal of a set with several bands by a reader that takes one."""
+    held = f"{ds.sizes[BAND]} bands ({_listing(band_wavelengths(ds))} micron)"
+    return (f"the measurements hold {held}; this reader takes one band: take it out with "
+            "band_measurements(measurements, wavelength)")
+
+
+def _validate_bands(ds: xr.Dataset) -> None:
+    """Check a measurement set with a ``band`` dimension (docs/measurements.md, "Bands"):
+    ``radiance`` over (band, view, row, col); the coordinate ``wavelength`` over band,
+    positive and increasing, instead of the attribute; the cameras and the sun (variables
+    and attributes without ``band``) the same for every band; a variable over ``band`` is
+    one value per band (an attribute of that band's set) or images over (band, view, row,
+    col); and each band, taken out (:func:`band_measurements`), a valid one-band set."""
+    if "radiance" not in ds:
+        raise MeasurementError("measurements have no 'radiance' variable")
+    if ds["radiance"].dims != _BAND_IMAGE_DIMS:
+        raise MeasurementError(f"radiance must be over {_BAND_IMAGE_DIMS} in a set with bands, "
+                               f"got {ds['radiance'].dims}")
+    if "wavelength" not in ds.variables or ds["wavelength"].dims != (BAND,):
+        raise MeasurementError("a set with bands needs the coordinate wavelength over band "
+                               "[micron]")
+    if "wavelength" in ds.attrs:
+        raise MeasurementError("a set with bands gives its wavelengths as the coordinate "
+                               "wavelength, not the attribute wavelength")
+    if problem := units_problem("wavelength", ds["wavelength"].attrs.get("units", "um"),
+                                "micron"):
+        raise MeasurementError(problem)
+    wavelengths = np.asarray(ds["wavelength"].values, dtype=float)
+    if not (np.all(np.isfinite(wavelengths)) and np.all(wavelengths > 0.0)):
+        raise MeasurementError(f"wavelengths must be positive, got {_listing(wavelengths)}")
+    if np.any(np.diff(wavelengths) <= 0.0):
+        raise MeasurementError("wavelengths must be distinct and increasing, got "
+                               f"{_listing(wavelengths)}")
+    for name, variable in ds.variables.items():
+        if BAND not in variable.dims or name in ("wavelength", BAND):
+            continue
+        if name in CAMERA_VARIABLES or name in SCENE_ATTRS:
+            raise MeasurementError(f"{name} varies over band: every band must have the same "
+                                   "cameras and sun")
+        if variable.dims not in ((BAND,), _BAND_IMAGE_DIMS):
+            raise MeasurementError(f"{name} is over {variable.dims}: a variable over band must "
+                                   f"be over ('band',) (one value per band) or "
+                                   f"{_BAND_IMAGE_DIMS} (images)")
+        if variable.dims == (BAND,) and name in ds.attrs:
+            raise MeasurementError(f"{name} is both an attribute and a variable over band")
+    for name in ("radiance_noise_std", "radiance_std_error"):
+        if name in ds and ds[name].dims != _BAND_IMAGE_DIMS:
+            raise MeasurementError(f"{name} must be over {_BAND_IMAGE_DIMS} like the radiance")
+    for i, wavelength in enumerate(wavelengths):
+        try:
+            validate_measurements(_band_at(ds, i))
+        except MeasurementError as err:
+            raise MeasurementError(f"band {wavelength:g} micron: {err}") from None
+
+
+def _band_at(ds: xr.Dataset, i: int) -> xr.Dataset:
+    """Band ``i`` of a set with bands in the one-band layout: the images' band taken, the
+    wavelength and the other variables over ``band`` alone made attributes."""
+    one = ds.isel({BAND: i})
+    per_band = [name for name, v in ds.variables.items() if v.dims == (BAND,) and name != BAND]
+    attrs = dict(ds.attrs)
+    for name in per_band:  # as a Python number or string
+        value = one[name].values
+        attrs[name] = str(value.item()) if value.dtype.kind in "USO" else value.item()
+    attrs["wavelength"] = float(attrs["wavelength"])
+    one = one.drop_vars([*per_band, *([BAND] if BAND in one.variables else [])])
+    one.attrs = attrs
+    return one
+
+
+def band_measurements(
+    measurements: xr.Dataset, wavelength: float, tolerance: float = BAND_TOLERANCE
+) -> xr.Dataset:
+    """The one band of ``measurements`` at ``wavelength`` [micron] in the one-band layout
+    (images over (view, row, col), the wavelength and the band's own values as attributes):
+    the band nearest it, which must lie within ``tolerance`` [micron]. A set without bands
+    is returned as it is where its ``wavelength`` attribute (if any) lies within
+    ``tolerance``. :func:`cloudct.measurement_bands.stack_bands` is the inverse.
+
+    Raises:
+        MeasurementError: no band within ``tolerance`` (the message lists the bands).
+    """
+    wavelength = float(wavelength)
+    held = band_wavelengths(measurements)
+    if BAND not in measurements.dims:
+        if held.size and abs(held[0] - wavelength) > tolerance:
+            raise MeasurementError(f"no band at {wavelength:g} micron: the measurements hold "
+                                   f"one band, {held[0]:g} micron")
+        return measurements
+    i = int(np.argmin(np.abs(held - wavelength)))
+    if not abs(held[i] - wavelength) <= tolerance:
+        raise MeasurementError(f"no band at {wavelength:g} micron (within {tolerance:g}): the "
+                               f"measurements hold {_listing(held)} micron")
+    return _band_at(measurements, i)

@@ -7,7 +7,12 @@ through a Mie table (:mod:`cloudct.physics.mie`):
 - ``cloud_albedo``: the table's albedo, linear interpolation in r_eff;
 - phase ``"mie"``: ``cloud_phase`` holds the table rows of the r_eff nearest to those of the
   cloudy cells (only the rows in use, their r_eff in the coordinate ``cloud_phase_reff``) and
-  ``cloud_phase_index`` the row of each cell; phase ``"hg"``: ``cloud_g`` = g.
+  ``cloud_phase_index`` the row of each cell; phase ``"hg"``: ``cloud_g`` = g;
+- ``air_extinction``: scaled from the wavelength the medium gives it at
+  (:func:`air_wavelength`) to the optics' wavelength as Rayleigh scattering
+  (:func:`cloudct.physics.air.air_extinction_at`, Bodhaine et al. 1999, Eq. 30).
+
+:func:`band_optics` gives one optical medium per band (wavelength) of a microphysical one.
 
 :func:`kernel_arrays` builds the :class:`OpticalGrid` and :class:`PhaseBank` of the numba
 kernels: type 0 air (Rayleigh, bank row 0), type 1 cloud (one bank row per distinct HG g,
@@ -27,6 +32,7 @@ import numpy as np
 import xarray as xr
 
 from cloudct.medium import (
+    AIR_EXTINCTION_WAVELENGTH,
     DEFAULT_CLOUD_ALBEDO,
     DEFAULT_CLOUD_G,
     DEFAULT_VEFF,
@@ -36,6 +42,7 @@ from cloudct.medium import (
     optical_medium,
     validate_medium,
 )
+from cloudct.physics.air import air_extinction_at
 from cloudct.physics.mie import DEFAULT_WAVELENGTH
 from cloudct.physics.mie import mie_table as load_mie_table
 from cloudct.physics.mixing import OpticalGrid
@@ -88,6 +95,13 @@ def optics_name(medium: xr.Dataset) -> str:
     return optics_choice(medium)
 
 
+def air_wavelength(medium: xr.Dataset) -> float:
+    """The wavelength [micron] at which ``medium``'s ``air_extinction`` is given: its
+    attribute ``air_extinction_wavelength``, else 0.672 (:data:`DEFAULT_WAVELENGTH`, where the
+    seed paper's 0.04 km-1 is given)."""
+    return float(medium.attrs.get(AIR_EXTINCTION_WAVELENGTH, DEFAULT_WAVELENGTH))
+
+
 def _single_veff(medium: xr.Dataset) -> float:
     """The droplet effective variance of the cloud, which must be one value for a table."""
     if "veff" not in medium:
@@ -133,9 +147,12 @@ def to_optical(
             the table's for both.
 
     Returns:
-        A validated optical medium on the same grid, keeping the air, the microphysics and
-        the attributes, with the ``wavelength`` attribute set, ``optics`` set to the choice
-        and ``optics_description`` saying what it is.
+        A validated optical medium on the same grid, keeping the microphysics and the
+        attributes, with the ``wavelength`` attribute set, ``optics`` set to the choice
+        and ``optics_description`` saying what it is. The air keeps its albedo; its
+        extinction is scaled from :func:`air_wavelength` to the wavelength as Rayleigh
+        scattering (:func:`cloudct.physics.air.air_extinction_at`; unchanged at the same
+        wavelength), and the attribute ``air_extinction_wavelength`` says the wavelength.
 
     Raises:
         ValueError: r_eff outside the table's range where lwc > 0, an unknown ``optics``,
@@ -196,13 +213,15 @@ def to_optical(
         }
         description = "Mie albedo and phase functions of the nearest table reff"
 
+    air = medium["air_extinction"]
+    air = air.copy(data=air_extinction_at(air.values, table_wavelength, air_wavelength(medium)))
     optical = optical_medium(
         medium["x"].values,
         medium["y"].values,
         medium["z"].values,
         extinction,
         cloud_albedo=albedo,
-        air_extinction=medium["air_extinction"],
+        air_extinction=air,
         air_albedo=float(medium["air_albedo"]),
         z_bounds=medium["z_bounds"].values if "z_bounds" in medium else None,
         wavelength=table_wavelength,
@@ -223,12 +242,48 @@ def to_optical(
         **medium.attrs,
         "Conventions": "CF-1.8",
         "wavelength": table_wavelength,
+        AIR_EXTINCTION_WAVELENGTH: table_wavelength,
+        AIR_EXTINCTION_WAVELENGTH + "_units": "micron",
         "optics": phase,
         "optics_description": f"extinction from the Mie table "
         f"({mie_table.attrs.get('mie_code', 'unknown code')}), veff = {veff:g}; {description}",
     }
     validate_medium(optical)
     return optical
+
+
+def band_optics(
+    medium: xr.Dataset,
+    wavelengths,
+    *,
+    mie_tables=None,
+    optics: str | None = None,
+) -> list[xr.Dataset]:
+    """One optical medium per band: :func:`to_optical` of the microphysical ``medium`` at
+    each of ``wavelengths`` [micron], the air scaled to each.
+
+    Args:
+        medium: a microphysical medium (``lwc``, ``reff``).
+        wavelengths: the bands' wavelengths [micron].
+        mie_tables: one Mie table per band, at its wavelength; None: the default table of
+            each wavelength (:func:`cloudct.physics.mie.mie_table`, with the refractive
+            index of water of :mod:`cloudct.physics.water`; computed and cached once).
+        optics: as in :func:`to_optical`. With ``"hg"`` every band has the seed paper's
+            cloud albedo and g (only the extinction and the air change with the band);
+            ``"mie"`` gives each band its droplets' absorption and phase functions.
+
+    Raises:
+        ValueError: an optical ``medium`` (its optics are one wavelength's), a number of
+            tables that is not the number of bands, or what :func:`to_optical` raises.
+    """
+    if is_optical(medium) or not is_microphysical(medium):
+        raise ValueError("band optics need a microphysical medium (lwc, reff)")
+    wavelengths = [float(w) for w in wavelengths]
+    tables = [None] * len(wavelengths) if mie_tables is None else list(mie_tables)
+    if len(tables) != len(wavelengths):
+        raise ValueError(f"{len(tables)} Mie tables for {len(wavelengths)} bands")
+    return [to_optical(medium, table, wavelength=w, optics=optics)
+            for w, table in zip(wavelengths, tables, strict=True)]
 
 
 def _on_grid(da: xr.DataArray, template: xr.DataArray) -> np.ndarray:

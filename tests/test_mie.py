@@ -19,6 +19,7 @@ from cloudct.medium import microphysical_medium
 from cloudct.optics import kernel_arrays, to_optical
 from cloudct.physics.mie import compute_mie_table, mie_efficiencies, mie_table
 from cloudct.physics.phase import HENYEY_GREENSTEIN, RAYLEIGH, TABULATED
+from cloudct.physics.water import water_refractive_index
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +38,7 @@ def test_large_spheres_extinction_tends_to_two(x0):
     np.testing.assert_allclose(qsca, qext, rtol=1e-12)  # no absorption
 
 
-@pytest.mark.parametrize("m", [1.33, 1.5, complex(1.3312, 1.6e-8)])
+@pytest.mark.parametrize("m", [1.33, 1.5, complex(1.331, 2.15e-8)])
 def test_small_spheres_rayleigh_limit(m):
     x = np.array([1e-3, 2e-3, 1e-2])
     qext, qsca, g = mie_efficiencies(m, x)
@@ -50,16 +51,17 @@ def test_small_spheres_rayleigh_limit(m):
 
 
 def test_non_absorbing_albedo_is_one():
-    ds = compute_mie_table(refractive_index=1.3312, reff=[2.0, 3.0], angles=[0.0, 90.0, 180.0])
+    ds = compute_mie_table(refractive_index=1.331, reff=[2.0, 3.0], angles=[0.0, 90.0, 180.0])
     np.testing.assert_allclose(ds["albedo"].values, 1.0, rtol=0, atol=1e-12)
     absorbing = compute_mie_table(
-        refractive_index=complex(1.3312, 1e-4), reff=[2.0, 3.0], angles=[0.0, 90.0, 180.0]
+        refractive_index=complex(1.331, 1e-4), reff=[2.0, 3.0], angles=[0.0, 90.0, 180.0]
     )
     assert np.all(absorbing["albedo"].values < 1.0 - 1e-4)
 
 
-def independent_q_eff(reff, veff=0.1, wavelength=0.672, m=mie.WATER_INDEX_0672):
+def independent_q_eff(reff, veff=0.1, wavelength=0.672):
     """<Q_ext r^2> / <r^2> on a uniform dx = 0.05 grid with scipy's gamma density."""
+    m = water_refractive_index(wavelength)
     alpha = (1 - 3 * veff) / veff
     dist = stats.gamma(alpha + 1, scale=reff * veff)  # n(r) ∝ r^alpha exp(-r / (reff veff))
     r_lo, r_hi = dist.ppf(1e-9), dist.ppf(1 - 1e-12)
@@ -102,8 +104,13 @@ def test_table_phase_functions(table):
 def test_table_attributes_and_units(table):
     assert table.attrs["wavelength"] == 0.672
     assert table.attrs["veff"] == 0.1
-    assert table.attrs["refractive_index_real"] == 1.3312
-    assert table.attrs["refractive_index_imag"] == 1.6e-8
+    # Hale & Querry (1973): n = 1.331 at 0.650 and 0.675 micron, k = 1.64e-8 and 2.23e-8,
+    # ln k linear in between (0.672 is 22/25 of the way)
+    assert table.attrs["refractive_index_real"] == 1.331
+    assert table.attrs["refractive_index_imag"] == pytest.approx(
+        1.64e-8 * (2.23 / 1.64) ** (22 / 25), rel=1e-12
+    )
+    assert table.attrs["refractive_index_source"].startswith("Hale and Querry (1973)")
     assert "quadrature" in table.attrs
     for name in ("ext_per_lwc", "q_ext", "albedo", "g", "phase", "reff", "scattering_angle"):
         assert "units" in table[name].attrs and "long_name" in table[name].attrs

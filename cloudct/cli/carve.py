@@ -11,8 +11,8 @@ from cloudct.cli.options import (
     chosen_backend,
     measured_optics,
     medium_from_options,
+    retrieval_measurements,
 )
-from cloudct.measurements import load_measurements
 from cloudct.medium import save_medium
 from cloudct.retrieval.carving import (
     FIT_PHOTONS,
@@ -25,7 +25,7 @@ from cloudct.retrieval.carving_figure import save_hull_figure
 
 def _cli_carve(args: argparse.Namespace) -> int:
     """``cloudct carve``: hull and initial medium from measurements."""
-    measurements = load_measurements(args.measurements)
+    measurements = retrieval_measurements(args.measurements, "carve")
     template = medium_from_options(args.medium, measured_optics(measurements, args.optics))
     output = Path(args.output)
     if output.exists() and not args.overwrite:
@@ -60,7 +60,8 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
         "extinction whose rendered images match the measured brightness (or a given one), on "
         "a template medium's grid.",
     )
-    p.add_argument("measurements", help="measurement netCDF (from `cloudct synth`)")
+    p.add_argument("measurements", help="measurement netCDF (from `cloudct synth`); of a file "
+                   "with several bands, its 0.672 micron band")
     p.add_argument("-o", "--output", default="init.nc", help="output medium netCDF")
     p.add_argument("--medium", help="template medium netCDF giving the grid and the air "
                    "(default: the bundled single cloud)")

@@ -7,6 +7,7 @@ import sys
 
 import xarray as xr
 
+from cloudct.les import bundled_single_cloud
 from cloudct.mc.backend import (
     BACKENDS,
     cuda_unavailable_reason,
@@ -16,8 +17,14 @@ from cloudct.mc.backend import (
 from cloudct.mc.memory import check_memory, peak_bytes
 from cloudct.mc.render import single_cloud_medium
 from cloudct.mc.scene import Scene
-from cloudct.medium import load_medium
+from cloudct.measurements import BAND, band_measurements, band_wavelengths, load_measurements
+from cloudct.medium import is_microphysical, is_optical, load_medium
 from cloudct.optics import DEFAULT_OPTICS, OPTICS, with_optics, with_phase_truncation
+from cloudct.physics.mie import DEFAULT_WAVELENGTH
+
+#: The cloud optics of ``--bands`` where neither the option nor the medium chooses: HG
+#: optics have no droplet absorption, so their bands would differ only in extinction and air.
+BAND_OPTICS = "mie"
 
 
 def add_backend_option(p: argparse.ArgumentParser, workers: bool = False) -> None:
@@ -93,6 +100,49 @@ def medium_from_options(path: str | None, optics: str | None) -> xr.Dataset:
     if path is None:
         return single_cloud_medium(optics or DEFAULT_OPTICS)
     return with_optics(load_medium(path), optics)
+
+
+def band_medium_from_options(path: str | None, optics: str | None) -> xr.Dataset:
+    """The microphysical medium of ``--bands``: the file at ``path`` (None: the bundled
+    single cloud's LWC and r_eff) with the cloud ``optics`` chosen: ``optics`` if given, else
+    the medium's recorded choice, else :data:`BAND_OPTICS`. An optical medium is refused:
+    its optics are one wavelength's."""
+    medium = bundled_single_cloud() if path is None else load_medium(path)
+    if is_optical(medium) or not is_microphysical(medium):
+        raise ValueError(f"--bands needs a microphysical medium (lwc, reff); {path} is "
+                         "optical, its optics are one wavelength's")
+    return with_optics(medium, optics or medium.attrs.get("optics", BAND_OPTICS))
+
+
+def add_bands_option(p: argparse.ArgumentParser, what: str) -> None:
+    """``--bands W [W ...]``: ``what`` at several wavelengths [micron]."""
+    p.add_argument(
+        "--bands", type=float, nargs="+", metavar="MICRON",
+        help=f"{what} in several bands (wavelengths in micron, increasing, e.g. 0.672 1.65 "
+        "2.13), of a microphysical medium (default: the bundled single cloud's LWC and "
+        "r_eff), into one file with a band dimension; band i (from the shortest) has seed "
+        f"SEED + i. Cloud optics default to a medium's recorded choice, else {BAND_OPTICS!r}",
+    )
+
+
+def retrieval_measurements(path: str, command: str) -> xr.Dataset:
+    """The measurement file at ``path`` as the extinction retrieval reads it (``cloudct
+    carve``, ``retrieve``, ``report``): a file with several bands gives its band at 0.672
+    micron (:data:`~cloudct.physics.mie.DEFAULT_WAVELENGTH`, the wavelength of the
+    retrieval's optics; :func:`cloudct.measurements.band_measurements`), which is said in
+    one line on stderr; a file without one is refused, naming its bands."""
+    measurements = load_measurements(path)
+    if BAND not in measurements.dims:
+        return measurements
+    held = ", ".join(f"{w:g}" for w in band_wavelengths(measurements))
+    try:
+        one = band_measurements(measurements, DEFAULT_WAVELENGTH)
+    except ValueError as err:
+        raise ValueError(f"measurement file {path}: {err}; the extinction retrieval works at "
+                         f"{DEFAULT_WAVELENGTH:g} micron") from None
+    print(f"cloudct {command}: {path} holds the bands {held} micron; the extinction retrieval "
+          f"reads the {float(one.attrs['wavelength']):g} micron band", file=sys.stderr)
+    return one
 
 
 def measured_optics(measurements: xr.Dataset, optics: str | None) -> str | None:

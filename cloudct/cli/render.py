@@ -8,9 +8,11 @@ from pathlib import Path
 import numpy as np
 
 from cloudct.cli.options import (
+    add_bands_option,
     add_distributed_options,
     add_optics_option,
     add_phase_truncation_option,
+    band_medium_from_options,
     chosen_backend,
     medium_from_options,
     say_memory,
@@ -27,14 +29,23 @@ from cloudct.mc.scene import (
 )
 from cloudct.mc.scene_figure import save_scene_figure
 from cloudct.mc.sensors import domain_means
+from cloudct.measurement_bands import stack_bands
+from cloudct.measurements import band_measurements
 from cloudct.medium import cell_edges
 from cloudct.netcdf import save_netcdf
+from cloudct.optics import band_optics
 
 
 def _cli_render(args: argparse.Namespace) -> int:
     """``cloudct render``: images of a medium for a scene, to netCDF and PNG previews."""
-    medium = truncated_as_asked(medium_from_options(args.medium, args.optics),
-                                args.phase_truncation)
+    if args.bands and (args.fluxes or args.probe):
+        raise ValueError("--bands renders images; --fluxes and --probe are one wavelength's")
+    if args.bands:  # one optical medium per band, as cloudct synth --bands
+        media = band_optics(band_medium_from_options(args.medium, args.optics), args.bands)
+    else:
+        media = [medium_from_options(args.medium, args.optics)]
+    media = [truncated_as_asked(m, args.phase_truncation) for m in media]
+    medium = media[0]
     scene = single_cloud_scene_of(medium) if args.scene is None else load_scene(args.scene)
     output = Path(args.output)
     if output.exists() and not args.overwrite:
@@ -54,29 +65,47 @@ def _cli_render(args: argparse.Namespace) -> int:
         warm_up = {} if args.method != "combined" else {"pixel_samples": 2}
         render(medium, scene, photons=2, method=args.method, batches=2, progress=False,
                backend=backend, executor=spread, **warm_up)
-        images = render(
-            medium, scene, photons=args.photons, method=args.method, seed=args.seed,
-            batches=args.batches, aim_fraction=args.aim_fraction, progress=None,
-            backend=backend, executor=spread, pixel_samples=args.pixel_samples,
-        )
+        bands = [
+            render(
+                band, scene, photons=args.photons, method=args.method, seed=args.seed + i,
+                batches=args.batches, aim_fraction=args.aim_fraction, progress=None,
+                backend=backend, executor=spread, pixel_samples=args.pixel_samples,
+            )
+            for i, band in enumerate(media)
+        ]
     finally:
         if client is not None:
             close_client(client)
-    save_images(images, output, overwrite=args.overwrite)
-    previews = save_previews(images, args.png or output.with_suffix(""))
-    rate = images.attrs["photons"] / images.attrs["wall_time"]
+    png = Path(args.png or output.with_suffix(""))
+    if args.bands:
+        images = stack_bands([b.assign_attrs(wavelength=float(m.attrs["wavelength"]))
+                              for b, m in zip(bands, media, strict=True)])
+        save_images(images, output, overwrite=args.overwrite)
+        previews = [f for w in images["wavelength"].values
+                    for f in save_previews(band_measurements(images, w), png / f"band_{w:g}um")]
+    else:
+        images = bands[0]
+        save_images(images, output, overwrite=args.overwrite)
+        previews = save_previews(images, png)
+    photons = sum(b.attrs["photons"] for b in bands)
+    seconds = sum(b.attrs["wall_time"] for b in bands)
+    rate = photons / seconds
     where = ""
     if "workers" in images.attrs:
         where = (f", {images.attrs['workers']} workers, "
-                 f"{images.attrs['bytes_to_workers'] / 2**20:.3g} MiB out, "
-                 f"{images.attrs['bytes_from_workers'] / 2**20:.3g} MiB back")
-    count = f"{images.attrs['photons']} {'samples/px' if args.method == 'backward' else 'photons'}"
+                 f"{sum(b.attrs['bytes_to_workers'] for b in bands) / 2**20:.3g} MiB out, "
+                 f"{sum(b.attrs['bytes_from_workers'] for b in bands) / 2**20:.3g} MiB back")
+    unit = "samples/px" if args.method == "backward" else "photons"
+    count = f"{bands[0].attrs['photons']} {unit}"
     if args.method == "combined":
-        count += (f" and {images.attrs['pixel_samples']} samples/px, "
-                  f"{100 * images.attrs['backward_share']:.3g} % of the light by the backward")
+        count += (f" and {bands[0].attrs['pixel_samples']} samples/px, "
+                  f"{100 * bands[0].attrs['backward_share']:.3g} % of the light by the backward")
+    if args.bands:
+        count = (f"{len(bands)} bands ({', '.join(f'{w:g}' for w in args.bands)} micron), "
+                 f"{count} each")
     print(
-        f"wrote {output} and {len(previews)} PNG previews in {previews[0].parent} "
-        f"({count}, {images.attrs['wall_time']:.1f} s, {rate:.3g}/s{where})"
+        f"wrote {output} and {len(previews)} PNG previews in {png} "
+        f"({count}, {seconds:.1f} s, {rate:.3g}/s{where})"
     )
     return 0
 
@@ -181,7 +210,8 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
                    help="with --fluxes (implied): also the domain-mean radiance travelling "
                    "in this direction [deg]: zenith from +z (< 90 leaving the top, > 90 "
                    "arriving at the bottom), azimuth from +x toward +y; repeat for more")
-    add_optics_option(p)
+    add_bands_option(p, "images")
+    add_optics_option(p, "Default: a medium's recorded choice, else 'hg' ('mie' with --bands)")
     add_phase_truncation_option(p, "the medium", "as the medium records, else none")
     add_distributed_options(p)
     p.set_defaults(func=_cli_render)

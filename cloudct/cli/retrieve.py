@@ -21,6 +21,7 @@ from cloudct.cli.options import (
     chosen_backend,
     measured_optics,
     medium_from_options,
+    retrieval_measurements,
     say_memory,
 )
 from cloudct.cli.run_options import (
@@ -33,7 +34,7 @@ from cloudct.cli.run_options import (
 from cloudct.distributed import close_client, connect
 from cloudct.les import bundled_single_cloud, seed_paper_cloud_field
 from cloudct.mc.scene import Scene, build_scene
-from cloudct.measurements import load_measurements, save_measurements, synthesize_measurements
+from cloudct.measurements import save_measurements, synthesize_measurements
 from cloudct.medium import cell_edges, load_medium, save_medium
 from cloudct.netcdf import load_netcdf, require_variables, save_netcdf
 from cloudct.optics import DEFAULT_OPTICS, optics_name, phase_truncation, to_optical
@@ -227,7 +228,7 @@ def _retrieve_into(args: argparse.Namespace, output: Path, checkpoint: Path) -> 
     _refuse_overwrite(output, args.overwrite)
     settings, origins = run_settings(args)  # a bad --config file ends here, before any work
     asked = None if args.resume else config_from_settings(settings)
-    measurements = load_measurements(args.measurements)
+    measurements = retrieval_measurements(args.measurements, "retrieve")
     truth = load_medium(args.truth) if args.truth else None
     if not args.resume:
         _refuse_overwrite(checkpoint, args.overwrite)
@@ -255,7 +256,8 @@ def _cli_report(args: argparse.Namespace) -> int:
     require_variables(result, ("cloud_extinction", "log_loss", "log_seconds"), "result",
                       args.result)
     truth = load_medium(args.truth) if args.truth else None
-    measurements = load_measurements(args.measurements) if args.measurements else None
+    measurements = (retrieval_measurements(args.measurements, "report")
+                    if args.measurements else None)
     backend = "cpu" if measurements is None else chosen_backend(args)  # the re-render's
     summary = write_report(result, args.output, truth=truth, measurements=measurements,
                            backend=backend)
@@ -335,7 +337,8 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
         "The run's settings come from the options, a --config file (options given override "
         "it) and the defaults, in that order.",
     )
-    r.add_argument("measurements", nargs="?", help="measurement netCDF")
+    r.add_argument("measurements", nargs="?", help="measurement netCDF; of a file with several "
+                   "bands, its 0.672 micron band")
     r.add_argument("--init", default="carve", help="'carve' or an initial medium netCDF")
     r.add_argument("--medium", help="template medium for the grid and air (with --init carve)")
     r.add_argument("--truth", help="true medium netCDF: epsilon and delta are logged")
@@ -359,7 +362,8 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("report", help="figures and a summary of a retrieval result")
     p.add_argument("result", help="result netCDF from cloudct retrieve")
     p.add_argument("--truth", help="true medium netCDF")
-    p.add_argument("--measurements", help="measurement netCDF (re-rendered images)")
+    p.add_argument("--measurements", help="measurement netCDF (re-rendered images; of a file "
+                   "with several bands, its 0.672 micron band)")
     p.add_argument("-o", "--output", default="report")
     add_backend_option(p)
     p.set_defaults(func=_cli_report)

@@ -27,6 +27,7 @@ from cloudct.medium.constructors import (
 from cloudct.medium.io import load_medium, save_medium
 from cloudct.medium.queries import cell_edges, domain_bounds, is_microphysical, is_optical
 from cloudct.medium.schema import (
+    AIR_EXTINCTION_WAVELENGTH,
     DEFAULT_AIR_ALBEDO,
     DEFAULT_AIR_EXTINCTION,
     DEFAULT_CLOUD_ALBEDO,
@@ -40,6 +41,7 @@ from cloudct.medium.schema import (
 from cloudct.medium.validation import check_transmittance, validate_medium
 
 __all__ = [
+    "AIR_EXTINCTION_WAVELENGTH",
     "DEFAULT_AIR_ALBEDO",
     "DEFAULT_AIR_EXTINCTION",
     "DEFAULT_CLOUD_ALBEDO",

@@ -14,6 +14,7 @@ from cloudct.medium.schema import (
     _EXTRA_COORD_ATTRS,
     _VARIABLES,
     _XYZ,
+    AIR_EXTINCTION_WAVELENGTH,
     DEFAULT_AIR_ALBEDO,
     DEFAULT_AIR_EXTINCTION,
     DEFAULT_CLOUD_ALBEDO,
@@ -35,6 +36,7 @@ def microphysical_medium(
     z_bounds: ArrayLike | None = None,
     air_extinction: ArrayLike = DEFAULT_AIR_EXTINCTION,
     air_albedo: float = DEFAULT_AIR_ALBEDO,
+    air_extinction_wavelength: float | None = None,
     title: str = "cloudct medium",
     source: str = "cloudct.medium.microphysical_medium",
 ) -> xr.Dataset:
@@ -52,6 +54,10 @@ def microphysical_medium(
             non-uniform z; each z must be the midpoint of its bounds.
         air_extinction: air extinction [km-1]: scalar, z-profile (nz,) or (nx, ny, nz).
         air_albedo: air single-scattering albedo.
+        air_extinction_wavelength: the wavelength [micron] at which ``air_extinction`` is
+            given, stored as the attribute :data:`AIR_EXTINCTION_WAVELENGTH` when given
+            (absent: 0.672 micron); the optics at another wavelength scale the air to it
+            (:func:`cloudct.optics.to_optical`).
         title, source: Dataset attributes (``source`` is the attribution of the field).
 
     Any input may also be an ``xarray.DataArray`` on the medium's dimensions; its
@@ -71,7 +77,8 @@ def microphysical_medium(
     if veff is not None:
         data_vars["veff"] = _variable("veff", veff, sizes, coords)
     data_vars |= _air_variables(air_extinction, air_albedo, sizes, coords)
-    return _assemble(coords, data_vars, {"title": title, "source": source})
+    attrs = {"title": title, "source": source}
+    return _assemble(coords, data_vars, attrs | _air_wavelength_attrs(air_extinction_wavelength))
 
 
 def optical_medium(
@@ -86,6 +93,7 @@ def optical_medium(
     cloud_phase_index: ArrayLike | None = None,
     air_extinction: ArrayLike = DEFAULT_AIR_EXTINCTION,
     air_albedo: float = DEFAULT_AIR_ALBEDO,
+    air_extinction_wavelength: float | None = None,
     z_bounds: ArrayLike | None = None,
     wavelength: float | None = None,
     title: str = "cloudct medium",
@@ -104,7 +112,8 @@ def optical_medium(
             ``angles`` [degree] increasing from 0 to 180.
         cloud_phase_index: the table row used in each cell: an int or an (nx, ny, nz) int
             array; may be omitted when the table has a single row.
-        air_extinction, air_albedo: air, as in :func:`microphysical_medium`.
+        air_extinction, air_albedo, air_extinction_wavelength: air, as in
+            :func:`microphysical_medium`.
         wavelength: [micron], stored as the ``wavelength`` attribute when given.
         title, source: Dataset attributes.
 
@@ -136,7 +145,7 @@ def optical_medium(
     attrs = {"title": title, "source": source}
     if wavelength is not None:
         attrs["wavelength"] = float(wavelength)
-    return _assemble(coords, data_vars, attrs)
+    return _assemble(coords, data_vars, attrs | _air_wavelength_attrs(air_extinction_wavelength))
 
 
 def with_transmittance(medium: xr.Dataset, family: str, mode: ArrayLike | None = None
@@ -286,6 +295,14 @@ def _air_variables(
         "air_extinction": _variable("air_extinction", air_extinction, sizes, coords),
         "air_albedo": _variable("air_albedo", air_albedo, sizes, coords),
     }
+
+
+def _air_wavelength_attrs(wavelength: float | None) -> dict:
+    """The attributes that record the wavelength [micron] of the air extinction, if given."""
+    if wavelength is None:
+        return {}
+    return {AIR_EXTINCTION_WAVELENGTH: float(wavelength),
+            AIR_EXTINCTION_WAVELENGTH + "_units": "micron"}
 
 
 def _assemble(

@@ -15,6 +15,11 @@ DEFAULT_CLOUD_ALBEDO = 0.99
 DEFAULT_CLOUD_G = 0.85
 DEFAULT_VEFF = 0.1
 
+#: The medium attribute that records the wavelength [micron] at which ``air_extinction`` is
+#: given (with ``air_extinction_wavelength_units = "micron"``); a medium without it has its
+#: air at 0.672 micron, the default wavelength (the seed paper's 0.04 km-1).
+AIR_EXTINCTION_WAVELENGTH = "air_extinction_wavelength"
+
 GRID_DIMS = ("x", "y", "z")
 
 #: Relative tolerance (of the local spacing) for "uniform spacing" and "matching edges".

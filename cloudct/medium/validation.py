@@ -14,6 +14,7 @@ from cloudct.medium.schema import (
     _MICROPHYSICAL,
     _OPTICAL,
     _VARIABLES,
+    AIR_EXTINCTION_WAVELENGTH,
     GRID_DIMS,
     SPACING_RTOL,
     MediumError,
@@ -41,7 +42,8 @@ def validate_medium(ds: xr.Dataset) -> None:
     4. ranges: lwc, extinctions >= 0; reff and veff > 0 where lwc > 0 and >= 0 elsewhere
        (their value is ignored where lwc = 0); albedos in [0, 1]; |g| < 1; phase table
        rows >= 0 and not all zero on scattering angles rising from 0 to 180 degrees;
-       integer ``cloud_phase_index`` within the table; ``wavelength`` attribute > 0.
+       integer ``cloud_phase_index`` within the table; ``wavelength`` and
+       ``air_extinction_wavelength`` attributes > 0.
 
     Variables outside the schema are allowed and ignored.
     """
@@ -225,11 +227,12 @@ def _check_values(ds: xr.Dataset) -> None:
     if "cloud_phase" in ds:
         _check_phase_table(ds)
     check_transmittance(ds)
-    if "wavelength" in ds.attrs:
-        wavelength = ds.attrs["wavelength"]
-        number = isinstance(wavelength, (int, float, np.integer, np.floating))
-        if not (number and np.isfinite(wavelength) and wavelength > 0):
-            raise MediumError(f"attribute wavelength must be > 0 (micron), is {wavelength!r}")
+    for name in ("wavelength", AIR_EXTINCTION_WAVELENGTH):
+        if name in ds.attrs:
+            wavelength = ds.attrs[name]
+            number = isinstance(wavelength, (int, float, np.integer, np.floating))
+            if not (number and np.isfinite(wavelength) and wavelength > 0):
+                raise MediumError(f"attribute {name} must be > 0 (micron), is {wavelength!r}")
 
 
 def check_transmittance(ds: xr.Dataset) -> None:

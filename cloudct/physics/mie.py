@@ -23,14 +23,20 @@ dx = 0.02, at r_eff = 2 and 10 micron, it gives Q_eff and g to 2e-4 and the phas
 Mie ripple, and the steps sample its resonances densely. The grid spans the 1e-7 and
 1 - 1e-7 quantiles of the r^2 n(r) and r^3 n(r) weights of the smallest and largest r_eff.
 
+The refractive index of water, unless one is passed, is interpolated in the table of Hale &
+Querry (1973) (:mod:`cloudct.physics.water`), at every wavelength alike: at 0.672 micron,
+m = 1.331 + 2.149e-8 i.
+
 Tables are cached as netCDF with the parameters that made them as attributes; the default
-table (0.672 micron, v_eff = 0.1, r_eff 1..25 micron) ships in ``cloudct/data``.
+table (0.672 micron, v_eff = 0.1, r_eff 1..25 micron) ships in ``cloudct/data``, made with
+that interpolated index.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import warnings
 from pathlib import Path
@@ -41,10 +47,8 @@ from scipy.stats import gamma as gamma_dist
 
 from cloudct.jit_cache import cache_root
 from cloudct.output_files import written_whole
+from cloudct.physics import water
 
-# Water at 0.672 micron, Hale & Querry (1973), "Optical constants of water in the 200-nm to
-# 200-um wavelength region", Appl. Opt. 12, 555-563. Convention m = n + i k, k >= 0 absorbs.
-WATER_INDEX_0672 = complex(1.3312, 1.6e-8)
 DEFAULT_WAVELENGTH = 0.672  # micron
 DEFAULT_VEFF = 0.1
 TABLE_VERSION = 1  # bump when the computation changes, to invalidate caches
@@ -126,6 +130,23 @@ def _radius_grid(wavelength: float, reff_min: float, reff_max: float, veff: floa
     return np.asarray(xs) / k
 
 
+def _index_source(wavelength: float, m: complex) -> str:
+    """Where the refractive index ``m`` of a table comes from: the built-in table of water
+    when ``m`` is its value at ``wavelength``, else the user."""
+    try:
+        builtin = water.water_refractive_index(wavelength)
+    except ValueError:
+        return "user"
+    if _close(m.real, builtin.real) and _close(m.imag, builtin.imag):
+        return f"{water.SOURCE}, interpolated: n linear, ln k linear in wavelength"
+    return "user"
+
+
+def _close(a, b) -> bool:
+    """Equal numbers, to the last bits that an interpolation may round differently."""
+    return math.isclose(float(a), float(b), rel_tol=1e-12, abs_tol=0.0)
+
+
 def _table_attrs(wavelength: float, m: complex, veff: float) -> dict:
     return {
         "title": "Mie table for water droplets, gamma size distribution",
@@ -133,9 +154,7 @@ def _table_attrs(wavelength: float, m: complex, veff: float) -> dict:
         "wavelength_units": "micron",
         "refractive_index_real": float(m.real),
         "refractive_index_imag": float(m.imag),
-        "refractive_index_source": "Hale and Querry (1973), Appl. Opt. 12, 555"
-        if m == WATER_INDEX_0672
-        else "user",
+        "refractive_index_source": _index_source(wavelength, m),
         "veff": float(veff),
         "size_distribution": "gamma: n(r) ~ r^((1-3 veff)/veff) exp(-r/(reff veff))",
         "quadrature": (
@@ -225,17 +244,24 @@ def compute_mie_table(
 
 
 def _refractive_index(wavelength: float, refractive_index: complex | None) -> complex:
+    """``refractive_index``, or the built-in index of water at ``wavelength``
+    (:func:`cloudct.physics.water.water_refractive_index`; a ValueError outside its range)."""
     if refractive_index is not None:
         return complex(refractive_index)
-    if np.isclose(wavelength, DEFAULT_WAVELENGTH, rtol=0.0, atol=1e-9):
-        return WATER_INDEX_0672
-    raise ValueError(
-        f"no built-in refractive index of water at {wavelength} micron: pass refractive_index"
-    )
+    return water.water_refractive_index(wavelength)
+
+
+def _same(stored, value) -> bool:
+    """An attribute read from a file equals the one asked for (numbers to 1e-12: the
+    interpolated refractive index may differ in its last bit from one machine's exp/log to
+    another's)."""
+    if isinstance(value, float) and isinstance(stored, (float, np.floating)):
+        return _close(stored, value)
+    return stored == value
 
 
 def _matches(ds: xr.Dataset, attrs: dict, reff: np.ndarray, angles: np.ndarray) -> bool:
-    same_attrs = all(ds.attrs.get(key) == value for key, value in attrs.items())
+    same_attrs = all(_same(ds.attrs.get(key), value) for key, value in attrs.items())
     return (
         same_attrs
         and np.array_equal(ds["reff"].values, reff)
@@ -259,7 +285,8 @@ def mie_table(
     Args:
         wavelength: wavelength [micron].
         refractive_index: m = n + i k of water (k >= 0); ``None`` for the built-in value,
-            available at 0.672 micron only.
+            interpolated in Hale & Querry (1973) (:mod:`cloudct.physics.water`), from 0.2
+            to 2.6 micron.
         veff: effective variance of the gamma size distribution, in (0, 1/3).
         reff: effective radii [micron], strictly increasing (default :func:`default_reff`).
         angles: scattering angles [deg] from 0 to 180 (default :func:`default_angles`).
