@@ -80,27 +80,37 @@ class OutputInUse(FileExistsError):
 def exclusive(path: str | os.PathLike) -> Iterator[None]:
     """Hold the output ``path`` for this process while the block runs: a second process
     asking for it meanwhile gets :class:`OutputInUse`, naming this one. The lock is the
-    operating system's on the file ``.NAME.lock`` beside ``path`` (left there; it is
-    released when the process ends, however it ends)."""
+    operating system's on the file ``.NAME.lock`` beside ``path``, released when the block
+    ends or the process does, however it ends; the block's end removes the file."""
     import fcntl  # POSIX only, as the command line is
 
     path = Path(path)
     if not path.parent.is_dir():
         raise FileNotFoundError(f"the folder of {path} does not exist (create it first)")
     lock = path.with_name(f".{path.name}.lock")
-    with open(lock, "a+") as f:
+    while True:
+        f = open(lock, "a+")  # noqa: SIM115 - closed below, on every way out
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             f.seek(0)
             holder = f.read().strip() or "another process"
+            f.close()
             raise OutputInUse(f"{path} is being written by {holder}: wait for it to end, or "
                               "write elsewhere (-o)") from None
+        try:
+            held = os.stat(lock).st_ino == os.fstat(f.fileno()).st_ino
+        except FileNotFoundError:
+            held = False
+        if held:
+            break
+        f.close()  # its holder removed the file we locked: lock the one there now
+    try:
         f.seek(0)
         f.truncate()
         f.write(f"process {os.getpid()} (cloudct, started {time.strftime('%Y-%m-%d %H:%M:%S')})")
         f.flush()
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
+        yield
+    finally:
+        lock.unlink(missing_ok=True)  # while held: whoever opened it before locks a ghost
+        f.close()

@@ -16,7 +16,7 @@ import xarray as xr
 import cloudct
 from cloudct.cli import main
 from cloudct.netcdf import save_netcdf
-from cloudct.output_files import WriteError
+from cloudct.output_files import OutputInUse, WriteError, exclusive
 
 LES = str(Path(cloudct.__file__).parent / "data" / "rico32x37x26.txt")  # the single cloud
 
@@ -94,3 +94,20 @@ def test_an_output_in_a_missing_folder_is_refused_before_any_work(tmp_path, caps
     assert main(["retrieve", str(tmp_path / "measurements.nc"), "-o", str(out)]) == 2
     assert capsys.readouterr().err.strip() == (
         f"cloudct retrieve: error: the folder of {out} does not exist (create it first)")
+
+
+def test_the_lock_file_goes_with_its_block_and_a_stale_one_holds_no_one_back(tmp_path):
+    import fcntl
+
+    out, lock = tmp_path / "r.nc", tmp_path / ".r.nc.lock"
+    with exclusive(out):
+        assert lock.exists()
+        with pytest.raises(OutputInUse), exclusive(out):
+            pass
+        stale = open(lock)  # opened before the holder's end, as a racing process might
+    assert not lock.exists()
+    fcntl.flock(stale, fcntl.LOCK_EX | fcntl.LOCK_NB)  # the racer locks the removed file
+    with exclusive(out):  # which holds back no one: the path's lock is a new file
+        assert lock.exists()
+    stale.close()
+    assert not lock.exists()
