@@ -52,6 +52,8 @@ def test_every_benchmark_command_shown_reproduces_its_run(page):
     """Each ``python -m benchmarks ...`` command of the page starts (the benchmark exists and
     its options parse; it is stopped before it runs), and a retrieval's options give the
     settings recorded in its result file (benchmarks.__main__.settings_drift)."""
+    import netCDF4  # noqa: F401 - sets HDF5_PLUGIN_PATH when first imported: its own doing
+
     from benchmarks.__main__ import page_commands, parse_error
 
     environment = dict(os.environ)

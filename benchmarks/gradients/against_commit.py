@@ -13,7 +13,8 @@ run records its wall time and its CPU time (all threads). The images and gradien
 two trees are compared (bitwise where the estimator's random stream is unchanged). Usage::
 
     python -m benchmarks gradients.against_commit [--commit 669ae1a] [--photons 1000000]
-        [--drt-spp 4] [--repeats 5] [--output benchmarks/results/speed_against_669ae1a]
+        [--drt-spp 4] [--repeats 5] [--calls render score drt]
+        [--output benchmarks/results/speed_against_669ae1a]
 """
 
 from __future__ import annotations
@@ -31,7 +32,8 @@ import numpy as np
 
 from benchmarks.common import REPO, RESULTS, WORK, markdown_table, run_header, write_result
 
-#: What one run times, in a new process; argv: photons, DRT samples per pixel.
+#: What one run times, in a new process; argv: photons, DRT samples per pixel, the calls
+#: (comma-separated names of ``calls``).
 TIMED = """
 import hashlib, json, sys, time
 import numpy as np
@@ -44,7 +46,7 @@ try:
 except ImportError:  # where DRT lived before the estimators were gathered
     from cloudct.mc.drt import drt_gradient
 
-photons, spp = int(sys.argv[1]), int(sys.argv[2])
+photons, spp, chosen = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3].split(",")
 medium = single_cloud_medium()
 edges = cell_edges(medium)
 scene = single_cloud_scene(np.array([e[0] for e in edges]), np.array([e[-1] for e in edges]))
@@ -58,7 +60,8 @@ calls = {  # the images, or the gradient's mean
                                      progress=False)[0],
 }
 out = {}
-for name, call in calls.items():
+for name in chosen:
+    call = calls[name]
     call(64, 1)  # compile or load the kernels
     start, cpu = time.perf_counter(), time.process_time()
     value = np.ascontiguousarray(call(photons, spp), dtype=np.float64)
@@ -70,6 +73,10 @@ print("RESULT " + json.dumps(out))
 """
 
 
+#: The names of TIMED's calls.
+CALLS = ("render", "score", "drt")
+
+
 def worktree(commit: str, work: Path) -> Path:
     """A checkout of ``commit`` under ``work`` (made once)."""
     tree = work / f"tree_{commit}"
@@ -79,12 +86,12 @@ def worktree(commit: str, work: Path) -> Path:
     return tree
 
 
-def timed_run(tree: Path, photons: int, spp: int, cache: Path) -> dict:
-    """One process of :data:`TIMED` importing cloudct from ``tree``."""
+def timed_run(tree: Path, photons: int, spp: int, cache: Path, calls: list[str]) -> dict:
+    """One process of :data:`TIMED` importing cloudct from ``tree``, timing ``calls``."""
     env = dict(os.environ, PYTHONPATH=str(tree), CLOUDCT_CACHE_DIR=str(cache),
                NUMBA_CACHE_DIR=str(cache / "numba"))
-    proc = subprocess.run([sys.executable, "-c", TIMED, str(photons), str(spp)], env=env,
-                          cwd=tempfile.gettempdir(), text=True, capture_output=True,
+    proc = subprocess.run([sys.executable, "-c", TIMED, str(photons), str(spp), ",".join(calls)],
+                          env=env, cwd=tempfile.gettempdir(), text=True, capture_output=True,
                           check=True)
     line = [s for s in proc.stdout.splitlines() if s.startswith("RESULT ")][-1]
     return json.loads(line[len("RESULT "):])
@@ -118,6 +125,8 @@ def main() -> None:
     parser.add_argument("--photons", type=int, default=1_000_000)
     parser.add_argument("--drt-spp", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--calls", nargs="+", choices=CALLS, default=list(CALLS),
+                        help="what to time (default: all)")
     parser.add_argument("--work", type=Path, default=WORK / "against_commit")
     parser.add_argument("--output", default=None)
     args = parser.parse_args()
@@ -128,10 +137,11 @@ def main() -> None:
     trees = {"base": worktree(args.commit, args.work), "this": REPO}
     caches = {k: args.work / f"cache_{k}" for k in trees}
     with ThreadPoolExecutor() as pool:  # compile each tree's kernels once, untimed, together
-        list(pool.map(lambda k: timed_run(trees[k], 64, 1, caches[k]), trees))
+        list(pool.map(lambda k: timed_run(trees[k], 64, 1, caches[k], args.calls), trees))
     result["runs"] = []
     for _ in range(args.repeats):
-        result["runs"].append({k: timed_run(t, args.photons, args.drt_spp, caches[k])
+        result["runs"].append({k: timed_run(t, args.photons, args.drt_spp, caches[k],
+                                            args.calls)
                                for k, t in trees.items()})
         write_result(result, output, markdown)
 
