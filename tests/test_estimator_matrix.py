@@ -98,6 +98,38 @@ def test_one_executor_entry_point_serves_every_estimator_bitwise(estimator):
     assert np.array_equal(np.asarray(out), np.asarray(ref)) and info["events"] > 0
 
 
+def test_a_repeated_call_compiles_nothing():
+    """Each estimator and render, called a second time with the same kinds of arguments,
+    runs its compiled kernels without entering the compiler: a kernel that asks for a
+    literal argument (``numba.literally``) re-runs numba's front end on every call before
+    it finds its specialisation (found 2026-11-28: 0.12 s per batch round, 6 s per
+    iteration of the tiny retrieval)."""
+    from numba.core import event
+
+    medium, scene, residual = small_case("pinhole")
+    calls = {e: (lambda e=e: gradient_estimate(medium, scene, residual, estimator=e,
+                                               photons=256, seed=1, batches=2))
+             for e in ESTIMATORS}
+    for method in ("forward", "backward"):
+        calls[f"render-{method}"] = lambda method=method: render_batches(
+            medium, scene, photons=256, seed=1, batches=2, method=method, progress=False)
+    for call in calls.values():
+        call()  # compiled (or loaded from the cache) here
+    compiled = []
+
+    class Listener(event.Listener):
+        def on_start(self, ev):
+            compiled.append(str(ev.data.get("dispatcher", ev.data)))
+
+        def on_end(self, ev):
+            pass
+
+    for name, call in calls.items():
+        with event.install_listener("numba:compile", Listener()):
+            call()
+        assert not compiled, f"{name}: a repeated call compiled {compiled}"
+
+
 def test_sampling_refuses_what_cannot_work():
     assert Sampling().per_batch(65) == 3  # 32 batches: rounded up
     for bad, match in (({"batches": 1}, "batches must be at least 2"),

@@ -11,15 +11,11 @@ backward_batches`) or from an alias table in proportion to |residual|
 k of batch b has index ``b * per_batch + k`` and draws its pixel from stream
 ``index`` of :data:`~cloudct.mc.random.DOMAIN_PIXEL_TABLE`). The CUDA kernel of
 :mod:`cloudct.mc.cuda_kernels` uses the same indices and :func:`gradient_sample`.
-
-On the CPU the batch kernel is compiled once per estimator (its code a literal): each
-specialisation holds only its estimator's sample, so that one estimator's code does not
-weigh on the optimisation of another's, and a run compiles only the estimators it uses.
 """
 
 from __future__ import annotations
 
-from numba import literally, njit, prange
+from numba import njit, prange
 
 from cloudct.mc.backward import score_pixel_sample
 from cloudct.mc.drt import drt_pixel_sample
@@ -77,7 +73,6 @@ def camera_gradient_batches(
     divided by ``per_batch``), parallel over batches; pixels as in the module
     docstring (an empty ``table``: every pixel with a non-zero residual). ``events[b]``
     accumulates the number of path vertices traced."""
-    literally(estimator)  # one specialisation per estimator (module documentation)
     nbatch = gradients.shape[0]
     nview, nrows, ncols = residual.shape
     for b in prange(nbatch):
