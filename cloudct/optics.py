@@ -5,9 +5,11 @@ through a Mie table (:mod:`cloudct.physics.mie`):
 
 - ``cloud_extinction = lwc * ext_per_lwc(reff)``, linear interpolation in r_eff;
 - ``cloud_albedo``: the table's albedo, linear interpolation in r_eff;
-- phase ``"mie"``: ``cloud_phase`` holds the table rows of the r_eff nearest to those of the
-  cloudy cells (only the rows in use, their r_eff in the coordinate ``cloud_phase_reff``) and
-  ``cloud_phase_index`` the row of each cell; phase ``"hg"``: ``cloud_g`` = g;
+- phase ``"mie"``: each cloudy cell's phase function linear in r_eff between the two table
+  rows about its r_eff, (1 - t) row k + t row k + 1 (:mod:`cloudct.physics.microphysics`):
+  ``cloud_phase`` holds the consecutive table rows the cloudy cells use (their r_eff in the
+  coordinate ``cloud_phase_reff``), ``cloud_phase_index`` each cell's row k and
+  ``cloud_phase_weight`` its t; phase ``"hg"``: ``cloud_g`` = g;
 - ``air_extinction``: scaled from the wavelength the medium gives it at
   (:func:`air_wavelength`) to the optics' wavelength as Rayleigh scattering
   (:func:`cloudct.physics.air.air_extinction_at`, Bodhaine et al. 1999, Eq. 30).
@@ -16,7 +18,7 @@ through a Mie table (:mod:`cloudct.physics.mie`):
 
 :func:`kernel_arrays` builds the :class:`OpticalGrid` and :class:`PhaseBank` of the numba
 kernels: type 0 air (Rayleigh, bank row 0), type 1 cloud (one bank row per distinct HG g,
-or one per tabulated phase function).
+or one per tabulated phase function, with each cell's weight of the next row).
 
 A medium with tabulated (Mie) phase functions may carry the attribute ``phase_truncation``
 (degrees, :func:`with_phase_truncation`): the kernels then see each phase function's
@@ -43,6 +45,7 @@ from cloudct.medium import (
     validate_medium,
 )
 from cloudct.physics.air import air_extinction_at
+from cloudct.physics.microphysics import reff_interval
 from cloudct.physics.mie import DEFAULT_WAVELENGTH
 from cloudct.physics.mie import mie_table as load_mie_table
 from cloudct.physics.mixing import OpticalGrid
@@ -116,13 +119,6 @@ def _single_veff(medium: xr.Dataset) -> float:
     return float(values[0]) if values.size else DEFAULT_VEFF
 
 
-def _nearest(table_reff: np.ndarray, reff: np.ndarray) -> np.ndarray:
-    """Index of the nearest table radius for each r_eff (inside the table range)."""
-    i = np.clip(np.searchsorted(table_reff, reff), 1, table_reff.size - 1)
-    lower_is_nearer = reff - table_reff[i - 1] <= table_reff[i] - reff
-    return np.where(lower_is_nearer, i - 1, i)
-
-
 def to_optical(
     medium: xr.Dataset,
     mie_table: xr.Dataset | None = None,
@@ -141,7 +137,7 @@ def to_optical(
         wavelength: [micron]; default 0.672, or the table's when ``mie_table`` is given
             (a different value is an error).
         optics: one of :data:`OPTICS` (None: :func:`optics_choice`). ``"mie"``: the table's
-            albedo and tabulated Mie phase functions (nearest table r_eff per cell);
+            albedo and tabulated Mie phase functions (linear in r_eff between table rows);
             ``"hg"``: the seed paper's optics, Henyey-Greenstein with g =
             :data:`DEFAULT_CLOUD_G` and cloud albedo :data:`DEFAULT_CLOUD_ALBEDO`. The extinction is
             the table's for both.
@@ -201,17 +197,17 @@ def to_optical(
         description = (f"Henyey-Greenstein phase function, g = {DEFAULT_CLOUD_G:g}, cloud albedo "
                        f"{DEFAULT_CLOUD_ALBEDO:g}")
     else:
-        nearest = _nearest(table_reff, r)
-        rows, inverse = np.unique(nearest[cloudy], return_inverse=True)
-        if rows.size == 0:
-            rows = nearest.ravel()[:1]
-        index = np.zeros(lwc.shape, dtype=np.int32)
-        index[cloudy] = inverse
+        lower, weight = reff_interval(r, mie_table)
+        # the rows of every cloudy cell's interval (row k + 1 even where t = 0: the
+        # derivative in r_eff there is the interval's)
+        first = int(lower[cloudy].min()) if cloudy.any() else 0
+        rows = np.arange(first, int(lower[cloudy].max()) + 2 if cloudy.any() else 1)
         phase_args = {
             "cloud_phase": (mie_table["phase"].values[rows], mie_table["scattering_angle"].values),
-            "cloud_phase_index": index,
+            "cloud_phase_index": np.where(cloudy, lower - first, 0).astype(np.int32),
+            "cloud_phase_weight": np.where(cloudy, weight, 0.0),
         }
-        description = "Mie albedo and phase functions of the nearest table reff"
+        description = "Mie albedo and phase functions linear in reff between table rows"
 
     air = medium["air_extinction"]
     air = air.copy(data=air_extinction_at(air.values, table_wavelength, air_wavelength(medium)))
@@ -332,16 +328,22 @@ def _peak_fractions(ds: xr.Dataset, truncation: float) -> tuple[list[tuple], np.
     return [("tabulated", a, v) for a, v, _ in cut], np.array([f for _, _, f in cut])
 
 
-def _delta_scaled(ds: xr.Dataset, cloud: xr.DataArray, fractions: np.ndarray | None):
-    """The cloud's extinction and albedo as the kernels see them, and d beta' / d beta
-    (None without a truncation): beta' = beta (1 - omega f), omega' = omega (1 - f) /
-    (1 - omega f), f the truncated share of each voxel's phase function."""
+def _delta_scaled(ds: xr.Dataset, cloud: xr.DataArray, fractions: np.ndarray | None,
+                  weight: np.ndarray):
+    """The cloud's extinction, albedo and next-row weight as the kernels see them, and
+    d beta' / d beta (None without a truncation): beta' = beta (1 - omega f), omega' =
+    omega (1 - f) / (1 - omega f), f the truncated share of each voxel's phase function.
+    A cell's mixture (1 - t) p_k + t p_{k+1}, rows that lose f_k and f_{k+1}, loses f =
+    (1 - t) f_k + t f_{k+1}, and its truncated rows mix with t' = t (1 - f_{k+1}) / (1 - f)."""
     albedo = _on_grid(ds["cloud_albedo"], cloud)
     if fractions is None:
-        return cloud.values, albedo, None
-    f = fractions[ds["cloud_phase_index"].transpose(*GRID).values]
+        return cloud.values, albedo, weight, None
+    k = ds["cloud_phase_index"].transpose(*GRID).values
+    f_next = fractions[np.minimum(k + 1, fractions.size - 1)]
+    f = (1.0 - weight) * fractions[k] + weight * f_next
     scale = 1.0 - albedo * f
-    return cloud.values * scale, albedo * (1.0 - f) / scale, scale
+    weight = np.where(weight > 0.0, weight * (1.0 - f_next) / (1.0 - f), 0.0)
+    return cloud.values * scale, albedo * (1.0 - f) / scale, weight, scale
 
 
 def cloud_extinction_scale(optical_medium: xr.Dataset) -> np.ndarray | None:
@@ -371,7 +373,8 @@ def kernel_arrays_and_scale(
         ``(grid, bank, scale)``. Type 0 is air: ``air_extinction`` broadcast to 3D, ``air_albedo``,
         bank row 0 (Rayleigh). Type 1 is cloud: ``cloud_extinction``, ``cloud_albedo`` and
         either one HG bank row per distinct ``cloud_g`` value or one tabulated row per row
-        of ``cloud_phase`` (bank row 1 + ``cloud_phase_index``), cut and delta-scaled where
+        of ``cloud_phase`` (bank row 1 + ``cloud_phase_index``, with the weight
+        ``cloud_phase_weight`` of the next row), cut and delta-scaled where
         the medium has a ``phase_truncation`` (module documentation). Arrays are
         C-contiguous float64 (int32 phase indices). ``scale``: d beta' / d beta per voxel,
         None without a truncation.
@@ -389,18 +392,22 @@ def kernel_arrays_and_scale(
 
     entries: list[tuple] = [("rayleigh",)]
     phase_index = np.zeros((2, *shape), dtype=np.int32)
+    phase_weight = np.zeros((2, *shape))
     fractions = None
     truncation = phase_truncation(ds)  # checked for HG media too
     if "cloud_phase" in ds:
         tabulated, fractions = _peak_fractions(ds, truncation)
         entries += tabulated
         phase_index[1] = 1 + ds["cloud_phase_index"].transpose(*GRID).values
+        if "cloud_phase_weight" in ds:
+            phase_weight[1] = ds["cloud_phase_weight"].transpose(*GRID).values
     else:
         gs, inverse = np.unique(_on_grid(ds["cloud_g"], cloud), return_inverse=True)
         entries += [("hg", gv) for gv in gs]
         phase_index[1] = 1 + inverse.reshape(shape)
 
-    cloud_extinction, cloud_albedo, scale = _delta_scaled(ds, cloud, fractions)
+    cloud_extinction, cloud_albedo, phase_weight[1], scale = _delta_scaled(
+        ds, cloud, fractions, phase_weight[1])
     extinction = np.stack([_on_grid(ds["air_extinction"], cloud), cloud_extinction])
     albedo = np.stack([_on_grid(ds["air_albedo"], cloud), cloud_albedo])
     grid = OpticalGrid(
@@ -410,6 +417,8 @@ def kernel_arrays_and_scale(
         extinction=np.ascontiguousarray(extinction, dtype=np.float64),
         albedo=np.ascontiguousarray(albedo, dtype=np.float64),
         phase_index=np.ascontiguousarray(phase_index),
+        phase_weight=np.ascontiguousarray(phase_weight),
+        cloud_reff_slopes=np.zeros((2, 1, 1, 1)),
         **_transmittance_arrays(ds, cloud),
     )
     return grid, phase_bank(entries), scale

@@ -38,7 +38,7 @@ cases = {
     "forward_render_kernel": (scene, *scalars, 0, 2, (images, events, d, d)),
     "forward_residual_kernel": (scene, *scalars, 0, 2, 4,
                                 (residual, events, path_sum, vertices, d, d)),
-    "forward_gradient_kernel": (scene, *scalars, 0, 2, (residual, gradients, path_sum,
+    "forward_gradient_kernel": (scene, *scalars, 0, 2, 2, (residual, gradients, path_sum,
                                                         vertices, d)),
     "forward_sensor_kernel": (scene, *scalars, 0, 2, (images, events, np.zeros((4, 1, 1, NFLUX)),
                                                       d)),

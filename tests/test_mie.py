@@ -154,11 +154,14 @@ def test_to_optical_extinction(table):
         optical["cloud_albedo"].values, float(table["albedo"].sel(reff=10.0)), rtol=1e-15
     )
     assert optical.attrs["wavelength"] == 0.672
-    assert optical["cloud_phase"].shape == (1, table.sizes["scattering_angle"])
+    # r_eff on a node: row 10.0 alone (t = 0), and the row above for the derivative
+    assert optical["cloud_phase"].shape == (2, table.sizes["scattering_angle"])
     assert float(optical["cloud_phase_reff"][0]) == 10.0
+    assert np.all(optical["cloud_phase_index"].values == 0)
+    assert np.all(optical["cloud_phase_weight"].values == 0.0)
 
 
-def test_to_optical_interpolation_and_nearest_phase(table):
+def test_to_optical_interpolation_and_two_row_phase(table):
     reff = np.zeros((2, 2, 3))
     reff[..., 0], reff[..., 1], reff[..., 2] = 10.02, 10.08, 10.05
     lwc = np.where(np.arange(3) == 2, 0.0, 1.0) * np.ones((2, 2, 3))  # top layer clear
@@ -168,8 +171,14 @@ def test_to_optical_interpolation_and_nearest_phase(table):
     assert ext[0, 0, 0] == pytest.approx(0.8 * lo + 0.2 * hi, rel=1e-12)
     assert ext[0, 0, 1] == pytest.approx(0.2 * lo + 0.8 * hi, rel=1e-12)
     assert np.all(ext[..., 2] == 0.0)
+    # the phase function of rows 10.0 and 10.1 mixed with the extinction's weights
     rows = optical["cloud_phase_reff"].values[optical["cloud_phase_index"].values]
-    assert np.all(rows[..., 0] == 10.0) and np.all(rows[..., 1] == 10.1)
+    weight = optical["cloud_phase_weight"].values
+    assert np.all(rows[..., :2] == 10.0)
+    assert np.all(optical["cloud_phase_reff"].values == [10.0, 10.1])
+    np.testing.assert_allclose(weight[..., 0], 0.2, rtol=1e-9)
+    np.testing.assert_allclose(weight[..., 1], 0.8, rtol=1e-9)
+    assert np.all(weight[..., 2] == 0.0) and np.all(rows[..., 2] == 10.0)
 
 
 def test_to_optical_hg_and_errors():
@@ -203,8 +212,9 @@ def test_kernel_arrays_mie():
     np.testing.assert_array_equal(grid.extinction[0], np.broadcast_to(profile, (2, 2, 3)))
     assert np.all(grid.albedo[0] == 0.912)
     np.testing.assert_array_equal(grid.extinction[1], optical["cloud_extinction"].values)
-    assert bank.kind.tolist() == [RAYLEIGH, TABULATED]
+    assert bank.kind.tolist() == [RAYLEIGH, TABULATED, TABULATED]  # rows 10.0 and 10.1
     assert np.all(grid.phase_index[0] == 0) and np.all(grid.phase_index[1] == 1)
+    assert np.all(grid.phase_weight == 0.0) and grid.phase_weight.shape == (2, 2, 2, 3)
     assert bank.table_start.dtype == np.int64 and bank.g.dtype == np.float64
 
 

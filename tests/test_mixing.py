@@ -15,9 +15,11 @@ from scipy import integrate, stats
 
 from cloudct.physics.mixing import (
     OpticalGrid,
+    cell_phase_function,
     choose_particle_type,
     effective_albedo,
     mixture_phase_function,
+    sample_cell_phase_cosine,
     scattering_coefficient,
     total_extinction,
 )
@@ -33,9 +35,11 @@ from cloudct.physics.phase import (
 BANK = phase_bank([("rayleigh",), ("hg", 0.85), ("hg", -0.5)])
 
 
-def make_grid(extinction, albedo, phase_index):
-    """A 1 x 1 x 1 grid with one value per particle type."""
+def make_grid(extinction, albedo, phase_index, phase_weight=None):
+    """A 1 x 1 x 1 grid with one value per particle type (``phase_weight``: each type's
+    weight of the bank row after its ``phase_index``; None: 0)."""
     shape = (len(extinction), 1, 1, 1)
+    weight = np.zeros(shape) if phase_weight is None else phase_weight
     return OpticalGrid(
         x_edges=np.array([0.0, 1.0]),
         y_edges=np.array([0.0, 1.0]),
@@ -43,6 +47,8 @@ def make_grid(extinction, albedo, phase_index):
         extinction=np.asarray(extinction, dtype=np.float64).reshape(shape),
         albedo=np.asarray(albedo, dtype=np.float64).reshape(shape),
         phase_index=np.asarray(phase_index, dtype=np.int32).reshape(shape),
+        phase_weight=np.asarray(weight, dtype=np.float64).reshape(shape),
+        cloud_reff_slopes=np.zeros((2, 1, 1, 1)),
         transmittance_family=np.zeros(1, dtype=np.int64),
         transmittance_mode=np.zeros((1, 1, 1)),
     )
@@ -114,7 +120,7 @@ def _scatter_many(grid, bank, n, rng):
     out = np.empty(n)
     for i in range(n):
         j = choose_particle_type(grid, 0, 0, 0, rng.random())
-        out[i] = sample_phase_cosine(bank, grid.phase_index[j, 0, 0, 0], rng.random())
+        out[i] = sample_cell_phase_cosine(grid, bank, j, 0, 0, 0, rng.random())
     return out
 
 
@@ -142,17 +148,12 @@ def test_choice_frequencies_three_types():
     assert result.pvalue > 1e-3
 
 
-def test_two_stage_sampling_follows_eq_5():
-    # air + cloud (HG 0.85) + a back-scattering type: direction histogram vs Eq. (5)
-    grid = make_grid([0.5, 2.0, 1.0], [0.912, 0.99, 0.6], [0, 1, 2])
-    n = 300_000
-    mu = _scatter_many(grid, BANK, n, np.random.default_rng(2021))
+def chi_square_of_directions(mu, density):
+    """Chi-square p-value of sampled cosines against a density per sr, in 90 bins of equal
+    scattering angle."""
+    n = mu.size
     edges = np.cos(np.radians(np.linspace(180.0, 0.0, 91)))
     edges[0], edges[-1] = -1.0, 1.0
-
-    def density(m):
-        return mixture_phase_function(grid, BANK, 0, 0, 0, m)
-
     prob = np.array(
         [
             2.0 * math.pi * integrate.quad(density, a, b)[0]
@@ -163,6 +164,46 @@ def test_two_stage_sampling_follows_eq_5():
     assert np.all(n * prob >= 5.0)
     result = stats.chisquare(counts, n * prob / prob.sum())
     print(f"chi2 = {result.statistic:.1f} on {counts.size - 1} dof, p = {result.pvalue:.3f}")
-    assert result.pvalue > 1e-3
+    return result.pvalue
+
+
+def test_two_stage_sampling_follows_eq_5():
+    # air + cloud (HG 0.85) + a back-scattering type: direction histogram vs Eq. (5)
+    grid = make_grid([0.5, 2.0, 1.0], [0.912, 0.99, 0.6], [0, 1, 2])
+    mu = _scatter_many(grid, BANK, 300_000, np.random.default_rng(2021))
+    assert chi_square_of_directions(
+        mu, lambda m: mixture_phase_function(grid, BANK, 0, 0, 0, m)) > 1e-3
     # and the HG rows of the bank are the HG formula
     assert phase_function(BANK, 2, 0.1) == henyey_greenstein_phase(0.1, -0.5)
+
+
+# a cloud whose phase function mixes bank rows 1 and 2 (HG 0.85 and -0.5) with weight 0.3
+T = 0.3
+AIR_MIXED_CLOUD = make_grid([0.5, 2.0], [0.912, 0.99], [0, 1], [0.0, T])
+
+
+def mixed_cloud_by_hand(mu):
+    """Eq. (5) for AIR_MIXED_CLOUD, written out with the closed forms."""
+    bs_air, bs_cloud = 0.912 * 0.5, 0.99 * 2.0
+    cloud = (1.0 - T) * henyey_greenstein_phase(mu, 0.85) + T * henyey_greenstein_phase(mu, -0.5)
+    return (bs_air * rayleigh_phase(mu) + bs_cloud * cloud) / (bs_air + bs_cloud)
+
+
+@pytest.mark.parametrize("mu", [-1.0, -0.4, 0.0, 0.3, 0.95, 1.0])
+def test_a_cells_two_row_phase_function_by_hand(mu):
+    expected = (1.0 - T) * henyey_greenstein_phase(mu, 0.85) + T * henyey_greenstein_phase(mu, -0.5)
+    assert cell_phase_function(AIR_MIXED_CLOUD, BANK, 1, 0, 0, 0, mu) == pytest.approx(
+        expected, rel=1e-14)
+    assert mixture_phase_function(AIR_MIXED_CLOUD, BANK, 0, 0, 0, mu) == pytest.approx(
+        mixed_cloud_by_hand(mu), rel=1e-13)
+
+
+def test_two_row_sampling_follows_the_mixture():
+    """Type, then row (k + 1 with probability t), then the cosine: the histogram of the
+    directions follows the by-hand mixture; with t = 0 the draw is row k's, bit for bit."""
+    mu = _scatter_many(AIR_MIXED_CLOUD, BANK, 300_000, np.random.default_rng(53))
+    assert chi_square_of_directions(mu, mixed_cloud_by_hand) > 1e-3
+    single = make_grid([0.5, 2.0], [0.912, 0.99], [0, 1])
+    for u in (0.0, 0.1, 0.5, 0.93, np.nextafter(1.0, 0.0)):
+        assert sample_cell_phase_cosine(single, BANK, 1, 0, 0, 0, u) == \
+            sample_phase_cosine(BANK, 1, u)

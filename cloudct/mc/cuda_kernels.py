@@ -36,7 +36,7 @@ from cloudct.mc.accumulate import add_to, register_cuda_implementation
 from cloudct.mc.backend import sort_by_path_length
 from cloudct.mc.backward import trace_pixel_sample
 from cloudct.mc.camera_gradient import drawn_pixel, gradient_sample
-from cloudct.mc.forward import GRADIENT, RENDER, RESIDUAL, trace_photon
+from cloudct.mc.forward import GRADIENT, REFF_GRADIENT, RENDER, RESIDUAL, trace_photon
 
 register_cuda_implementation()
 # kernels compiled once per machine, not per process (cloudct.jit_cache: where, and when stale)
@@ -138,9 +138,10 @@ def forward_residual_kernel(
 
 @cuda.jit(cache=True)
 def forward_gradient_kernel(
-    scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, out
+    scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, mode, out
 ):
-    """Second gradient pass (GRADIENT) in an explicit photon order: out = (residual,
+    """Second gradient pass (``mode`` GRADIENT or REFF_GRADIENT) in an explicit photon
+    order: out = (residual,
     gradients[nbatch, x, y, z], path_sum, order[n], no_image[1, 1, 1]); thread t re-traces
     launch photon p = order[t] (the layout of :func:`forward_residual_kernel`) with its
     path sum. The order lets warps hold photons of similar path length."""
@@ -153,7 +154,7 @@ def forward_gradient_kernel(
     index = b * per_batch + first + p % count
     trace_photon(
         scene.grid, scene.bank, scene.cams, scene.copies, scene.sun, periodic, ground,
-        rr_depth, rr_survival, seed, index, GRADIENT, no_image, residual, gradients[b],
+        rr_depth, rr_survival, seed, index, mode, no_image, residual, gradients[b],
         path_sum[p],
     )
 
@@ -353,8 +354,8 @@ class ForwardLauncher(Launcher):
         events, *, fluxes: np.ndarray | None = None, sort_paths: bool | None = None,
         threads_per_block: int | None = None,
     ):
-        if mode not in (RENDER, GRADIENT):
-            raise ValueError(f"mode must be RENDER or GRADIENT, got {mode}")
+        if mode not in (RENDER, GRADIENT, REFF_GRADIENT):
+            raise ValueError(f"mode must be RENDER, GRADIENT or REFF_GRADIENT, got {mode}")
         if fluxes is not None and mode != RENDER:
             raise ValueError("flux tallies are made by RENDER launches only")
         self.scene = device_scene(k)
@@ -406,7 +407,7 @@ class ForwardLauncher(Launcher):
         out = (self.residual, self.gradients, path_sum, to_device(order.astype(np.int64)),
                self.dummy)
         launch_kernel(forward_gradient_kernel, order.size, self.tpb, self.scene, *self.scalars,
-                      first, count, out)
+                      first, count, self.mode, out)
 
     def finish(self) -> None:
         images, gradients, events, fluxes = self.host

@@ -160,12 +160,14 @@ from cloudct.mc.traversal import (
     step_index,
 )
 from cloudct.physics.mixing import (
+    cell_phase_function,
     effective_albedo,
     mixture_phase_function,
+    sample_cell_phase_cosine,
     scattering_coefficient,
     total_extinction,
 )
-from cloudct.physics.phase import phase_function, sample_phase_cosine, scatter_direction
+from cloudct.physics.phase import scatter_direction
 from cloudct.physics.transmittance import EXPONENTIAL, GAMMA
 
 INV_PI = 1.0 / math.pi
@@ -300,7 +302,7 @@ def scattering_kernel(grid, bank, ix, iy, iz, mu):
     for j in range(grid.extinction.shape[0]):
         bs = grid.albedo[j, ix, iy, iz] * grid.extinction[j, ix, iy, iz]
         if bs > 0.0:
-            value += bs * phase_function(bank, grid.phase_index[j, ix, iy, iz], mu)
+            value += bs * cell_phase_function(grid, bank, j, ix, iy, iz, mu)
     return value
 
 
@@ -391,15 +393,16 @@ def trace_path(
                 if w_dt > 0.0 and alpha_c > 0.0:
                     # Eq. (8), first summand, MIS-weighted: sun part + diffuse part, whose
                     # continuation estimate is the suffix after this vertex
-                    ip = grid.phase_index[CLOUD, ix, iy, iz]
                     beta = total_extinction(grid, ix, iy, iz)
-                    value = theta * phase_function(bank, ip, mu_sun) * t_sun / beta
+                    value = (theta * cell_phase_function(grid, bank, CLOUD, ix, iy, iz, mu_sun)
+                             * t_sun / beta)
                     suffix = total - radiance
                     if suffix != 0.0:
                         mu = min(max(ux * nux + uy * nuy + uz * nuz, -1.0), 1.0)
                         kernel = scattering_kernel(grid, bank, ix, iy, iz, mu)
                         if kernel > 0.0:
-                            value += phase_function(bank, ip, mu) * suffix / kernel
+                            value += (cell_phase_function(grid, bank, CLOUD, ix, iy, iz, mu)
+                                      * suffix / kernel)
                     add_to(gradient, ix, iy, iz, residual * w_dt * alpha_c * value)
             ux, uy, uz = nux, nuy, nuz
         depth += 1
@@ -419,10 +422,10 @@ def cloud_sun_term(grid, bank, sun, periodic, px, py, pz, ix, iy, iz, ux, uy, uz
     """f_c(s.u) T_sun(x): the sunlight a unit of cloud scattering coefficient at x (voxel
     (ix, iy, iz)) sends back along -u, per unit albedo (the sun part of K in the module
     docstring)."""
-    ip = grid.phase_index[CLOUD, ix, iy, iz]
     sx, sy, sz = -sun.direction[0], -sun.direction[1], -sun.direction[2]
     tau_sun = optical_depth_to_exit(grid, px, py, pz, sx, sy, sz, ix, iy, iz, periodic)
-    return phase_function(bank, ip, sx * ux + sy * uy + sz * uz) * math.exp(-tau_sun)
+    return (cell_phase_function(grid, bank, CLOUD, ix, iy, iz, sx * ux + sy * uy + sz * uz)
+            * math.exp(-tau_sun))
 
 
 @njit(cache=True)
@@ -438,9 +441,8 @@ def cloud_diffuse_term(
 
     Returns ``(radiance, vertices, state)``.
     """
-    ip = grid.phase_index[CLOUD, ix, iy, iz]
     u, state = uniform(state)
-    mu = sample_phase_cosine(bank, ip, u)
+    mu = sample_cell_phase_cosine(grid, bank, CLOUD, ix, iy, iz, u)
     u, state = uniform(state)
     wx, wy, wz = scatter_direction(ux, uy, uz, mu, TWO_PI * u)
     radiance, vertices, state, _, _, _, _, _, _, _, _, _, _, _, _ = trace_path(

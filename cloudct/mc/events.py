@@ -17,8 +17,8 @@ import math
 from numba import njit
 
 from cloudct.mc.random import uniform
-from cloudct.physics.mixing import choose_particle_type
-from cloudct.physics.phase import sample_phase_cosine, scatter_direction
+from cloudct.physics.mixing import choose_particle_type, sample_cell_phase_cosine
+from cloudct.physics.phase import scatter_direction
 
 TWO_PI = 2.0 * math.pi
 
@@ -29,7 +29,7 @@ def scatter(grid, bank, ix, iy, iz, ux, uy, uz, state):
     u, state = uniform(state)
     ptype = choose_particle_type(grid, ix, iy, iz, u)
     u, state = uniform(state)
-    mu = sample_phase_cosine(bank, grid.phase_index[ptype, ix, iy, iz], u)
+    mu = sample_cell_phase_cosine(grid, bank, ptype, ix, iy, iz, u)
     u, state = uniform(state)
     ux, uy, uz = scatter_direction(ux, uy, uz, mu, TWO_PI * u)
     return ux, uy, uz, state

@@ -43,6 +43,7 @@ from cloudct.mc.traversal import (
 from cloudct.physics.mixing import (
     effective_albedo,
     mixture_phase_function,
+    reff_log_derivative,
     scattering_log_derivative,
 )
 from cloudct.physics.transmittance import EXPONENTIAL
@@ -54,8 +55,11 @@ INV_PI = 1.0 / math.pi
 RENDER = 0  # add them to the images
 RESIDUAL = 1  # sum them, weighted by the pixels' residuals (first gradient pass)
 GRADIENT = 2  # deposit the residual-weighted score-function gradient (second pass)
-COUNT = 3  # no estimates: count the path's records (path recycling, first pass)
-RECORD = 4  # no estimates: write the path's records into a PathRecord (second pass)
+# deposit the score's vertex terms in the cloud's r_eff alone (second pass, instead of
+# GRADIENT; mixing.reff_log_derivative): d/d r_eff at fixed extinction
+REFF_GRADIENT = 3
+COUNT = 4  # no estimates: count the path's records (path recycling, first pass)
+RECORD = 5  # no estimates: write the path's records into a PathRecord (second pass)
 
 #: The particle type whose extinction the gradients are taken with respect to.
 CLOUD = 1
@@ -184,7 +188,9 @@ def local_estimate(
     term at the angle towards the camera. With a scratch :class:`~cloudct.mc.traversal.Trail`
     (``trail``), GRADIENT deposits the connection segment from the crossings recorded while
     computing its transmittance instead of walking it a second time (same values, same
-    order; a ray with more crossings than the trail holds is walked again).
+    order; a ray with more crossings than the trail holds is walked again). REFF_GRADIENT
+    deposits, for scattering, the vertex term in the cloud's r_eff at that angle alone
+    (:func:`cloudct.physics.mixing.reff_log_derivative`).
 
     With ``cams.mis_ratio`` > 0 each estimate is weighted by its share w_f of the combined
     estimator (:mod:`cloudct.mc.combined`): ``sun_end`` is the path's T(x_1 -> sun) / W
@@ -256,6 +262,9 @@ def local_estimate(
                             gradient, ix, iy, iz,
                             value * scattering_log_derivative(grid, bank, CLOUD, ix, iy, iz, mu),
                         )
+                elif mode == REFF_GRADIENT and value != 0.0 and ground_albedo < 0.0:
+                    add_to(gradient, ix, iy, iz,
+                           value * reff_log_derivative(grid, bank, ix, iy, iz, mu))
     return weighted_sum
 
 
@@ -279,7 +288,9 @@ def trace_photon(
     residual-weighted score-function gradient sum_e S_e score_e (Eqs. 46-49). The score of
     event e holds the segments and sampled vertices of the path up to e, so segment k is
     weighted by W_k = sum_{e >= k} S_e, obtained as ``path_sum`` minus the events already
-    passed: the cost stays linear in the path length.
+    passed: the cost stays linear in the path length. REFF_GRADIENT re-traces it the same
+    way but deposits only the vertex terms in the cloud's r_eff (the extinction's part of
+    d/d r_eff is GRADIENT's through the chain rule, :mod:`cloudct.mc.microphysics_gradient`).
 
     A scratch :class:`~cloudct.mc.traversal.Trail` lets GRADIENT walk each camera
     connection once (see :func:`local_estimate`).
@@ -398,15 +409,16 @@ def trace_photon(
                     grid, bank, sun, ix, iy, iz, vx, vy, vz, ux, uy, uz, depth, sun_turn,
                     back_aims, sun_lobe,
                 )
-            if mode == GRADIENT:
+            if mode == GRADIENT or mode == REFF_GRADIENT:
                 # the sampled vertex term belongs to the scores of all later events
                 mu = vx * ux + vy * uy + vz * uz
                 later = remaining - s_event
                 if later != 0.0:
-                    add_to(
-                        gradient, ix, iy, iz,
-                        later * scattering_log_derivative(grid, bank, CLOUD, ix, iy, iz, mu),
-                    )
+                    if mode == GRADIENT:
+                        term = scattering_log_derivative(grid, bank, CLOUD, ix, iy, iz, mu)
+                    else:
+                        term = reff_log_derivative(grid, bank, ix, iy, iz, mu)
+                    add_to(gradient, ix, iy, iz, later * term)
         total += s_event
         remaining -= s_event
         depth += 1
@@ -441,7 +453,8 @@ def forward_batches(
     batch b's local estimates (not yet divided by its photon count) in ``images[b]``;
     GRADIENT accumulates its residual-weighted score-function gradient in ``gradients[b]``
     (each photon first traced in RESIDUAL mode for its sum, then again in GRADIENT mode,
-    with a scratch trail per batch so that each camera connection is walked once).
+    with a scratch trail per batch so that each camera connection is walked once);
+    REFF_GRADIENT the same way its vertex terms in the cloud's r_eff.
     ``events[b]`` counts the path vertices.
     """
     capacity = 4 * (grid.x_edges.size + grid.y_edges.size + grid.z_edges.size) + 16
@@ -464,7 +477,7 @@ def forward_batches(
                 if path_sum != 0.0:
                     trace_photon(
                         grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth,
-                        rr_survival, seed, index, GRADIENT, images[b], residual, gradients[b],
+                        rr_survival, seed, index, mode, images[b], residual, gradients[b],
                         path_sum, None, 0, trail,
                     )
                 n += vertices

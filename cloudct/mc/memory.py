@@ -21,8 +21,8 @@ from pathlib import Path
 #: batch means and their deviations (the standard error squares them in place).
 PEAK_COPIES = 2
 #: float64 arrays of the grid's size held for the kernels (extinctions, albedos, phase
-#: indices and the clouds' extinction, with copies for periodic boundaries).
-GRID_ARRAYS = 8
+#: indices and weights, and the clouds' extinction, with copies for periodic boundaries).
+GRID_ARRAYS = 10
 
 
 def peak_bytes(voxels: int, pixels: int, batches: int, gradient: bool) -> int:

@@ -108,8 +108,7 @@ from cloudct.mc.drt import (
 from cloudct.mc.events import lambertian_bounce, russian_roulette, scatter
 from cloudct.mc.random import DOMAIN_SAMPLE_MATCHING, uniform
 from cloudct.mc.traversal import BOTTOM, INF, LEFT, march, optical_depth_to_exit
-from cloudct.physics.mixing import effective_albedo, mixture_phase_function
-from cloudct.physics.phase import phase_function
+from cloudct.physics.mixing import cell_phase_function, effective_albedo, mixture_phase_function
 
 
 @njit(cache=True)
@@ -229,9 +228,9 @@ def match_segments(
                     mu = min(max(ux * nux + uy * nuy + uz * nuz, -1.0), 1.0)
                     kernel = scattering_kernel(grid, bank, ix, iy, iz, mu)
                     if kernel > 0.0:
-                        ip = grid.phase_index[CLOUD, ix, iy, iz]
                         add_to(gradient, ix, iy, iz, residual * w_ff * alpha_c
-                               * phase_function(bank, ip, mu) * indirect / kernel)
+                               * cell_phase_function(grid, bank, CLOUD, ix, iy, iz, mu)
+                               * indirect / kernel)
             ux, uy, uz = nux, nuy, nuz
         depth += 1
         factor, state = russian_roulette(depth, rr_depth, rr_survival, state)

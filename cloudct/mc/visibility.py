@@ -57,6 +57,8 @@ def cloud_grid(medium: xr.Dataset) -> OpticalGrid:
         extinction=np.ascontiguousarray(beta.reshape(shape)),
         albedo=np.zeros(shape),
         phase_index=np.zeros(shape, dtype=np.int32),
+        phase_weight=np.zeros(shape),
+        cloud_reff_slopes=np.zeros((2, 1, 1, 1)),
         transmittance_family=np.array([EXPONENTIAL], dtype=np.int64),
         transmittance_mode=np.zeros((1, 1, 1)),
     )

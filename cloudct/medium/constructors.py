@@ -91,6 +91,7 @@ def optical_medium(
     cloud_g: ArrayLike | None = None,
     cloud_phase: tuple[ArrayLike, ArrayLike] | None = None,
     cloud_phase_index: ArrayLike | None = None,
+    cloud_phase_weight: ArrayLike | None = None,
     air_extinction: ArrayLike = DEFAULT_AIR_EXTINCTION,
     air_albedo: float = DEFAULT_AIR_ALBEDO,
     air_extinction_wavelength: float | None = None,
@@ -112,6 +113,10 @@ def optical_medium(
             ``angles`` [degree] increasing from 0 to 180.
         cloud_phase_index: the table row used in each cell: an int or an (nx, ny, nz) int
             array; may be omitted when the table has a single row.
+        cloud_phase_weight: each cell's weight t in [0, 1] of the row after its
+            ``cloud_phase_index`` k: its phase function is (1 - t) row k + t row k + 1 (the
+            Mie phase function linear in r_eff between table rows), shape (nx, ny, nz);
+            None: row k alone.
         air_extinction, air_albedo, air_extinction_wavelength: air, as in
             :func:`microphysical_medium`.
         wavelength: [micron], stored as the ``wavelength`` attribute when given.
@@ -130,8 +135,8 @@ def optical_medium(
         "cloud_albedo": _variable("cloud_albedo", cloud_albedo, sizes, coords),
     }
     if cloud_phase is None:
-        if cloud_phase_index is not None:
-            raise MediumError("cloud_phase_index given without cloud_phase")
+        if cloud_phase_index is not None or cloud_phase_weight is not None:
+            raise MediumError("cloud_phase_index or cloud_phase_weight given without cloud_phase")
         g = DEFAULT_CLOUD_G if cloud_g is None else cloud_g
         data_vars["cloud_g"] = _variable("cloud_g", g, sizes, coords)
     else:
@@ -141,6 +146,9 @@ def optical_medium(
         coords["scattering_angle"] = angles
         data_vars["cloud_phase"] = phase
         data_vars["cloud_phase_index"] = index
+        if cloud_phase_weight is not None:
+            data_vars["cloud_phase_weight"] = _variable("cloud_phase_weight", cloud_phase_weight,
+                                                        sizes, coords)
     data_vars |= _air_variables(air_extinction, air_albedo, sizes, coords)
     attrs = {"title": title, "source": source}
     if wavelength is not None:

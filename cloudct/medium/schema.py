@@ -61,6 +61,9 @@ _VARIABLES: dict[str, _Spec] = {
         (("phase_table", "scattering_angle"),), "sr-1", "cloud phase function (tabulated)"
     ),
     "cloud_phase_index": _Spec((_XYZ,), "1", "row of cloud_phase used in each cell"),
+    "cloud_phase_weight": _Spec(
+        (_XYZ,), "1", "weight of the row after cloud_phase_index in each cell's phase function"
+    ),
     "air_extinction": _Spec((_SCALAR, ("z",), _XYZ), "km-1", "air extinction coefficient"),
     "air_albedo": _Spec((_SCALAR,), "1", "air single-scattering albedo"),
     "transmittance_mode": _Spec(
@@ -83,4 +86,5 @@ _EXTRA_COORD_ATTRS = {
 }
 
 _MICROPHYSICAL = ("lwc", "reff", "veff")
-_OPTICAL = ("cloud_extinction", "cloud_albedo", "cloud_g", "cloud_phase", "cloud_phase_index")
+_OPTICAL = ("cloud_extinction", "cloud_albedo", "cloud_g", "cloud_phase", "cloud_phase_index",
+            "cloud_phase_weight")

@@ -86,6 +86,8 @@ def _check_descriptions(ds: xr.Dataset) -> None:
             raise MediumError("cloud_phase is present but cloud_phase_index is missing")
         if "cloud_phase_index" in ds and "cloud_phase" not in ds:
             raise MediumError("cloud_phase_index is present but cloud_phase is missing")
+        if "cloud_phase_weight" in ds and "cloud_phase" not in ds:
+            raise MediumError("cloud_phase_weight is present but cloud_phase is missing")
         if "cloud_g" not in ds and "cloud_phase" not in ds:
             raise MediumError(
                 "incomplete optical description: no phase function "
@@ -277,6 +279,18 @@ def _check_phase_table(ds: xr.Dataset) -> None:
     if np.any(empty):
         raise MediumError(f"cloud_phase row {int(np.argmax(empty))} is zero at every angle")
     _check_index_range(ds["cloud_phase_index"].values, table.shape[0])
+    if "cloud_phase_weight" in ds:
+        _check_phase_weight(ds["cloud_phase_weight"], ds["cloud_phase_index"].values,
+                            table.shape[0])
+
+
+def _check_phase_weight(weight: xr.DataArray, index: np.ndarray, ntable: int) -> None:
+    """A cell's phase function is (1 - t) row k + t row k + 1: t in [0, 1], and t = 0 on
+    the table's last row."""
+    values = weight.values
+    _require(weight, (values >= 0) & (values <= 1), "must be in [0, 1]")
+    _require(weight, (values == 0) | (index < ntable - 1),
+             f"must be 0 where cloud_phase_index is the table's last row ({ntable - 1})")
 
 
 def _check_index_range(index: np.ndarray, ntable: int) -> None:

@@ -225,8 +225,8 @@ def extinction_part_of_gradient(
     turns through there, times the residual-weighted contribution of the estimates whose
     path holds that turn (Eq. 46): for a local estimate made at the vertex, the angle
     towards the camera; for the direction sampled there, the estimates made after it.
-    Transmittance segments add nothing at fixed beta. The kernels do not accumulate these
-    terms yet.
+    Transmittance segments add nothing at fixed beta. The forward kernels accumulate these
+    terms in their REFF_GRADIENT pass (:mod:`cloudct.mc.microphysics_gradient`).
 
     Args:
         d_loss_d_extinction: d loss / d beta per voxel.

@@ -483,6 +483,8 @@ def initial_medium(
         table = template_medium["cloud_phase"]
         cloud["cloud_phase"] = (table.values, table["scattering_angle"].values)
         cloud["cloud_phase_index"] = template_medium["cloud_phase_index"]
+        if "cloud_phase_weight" in template_medium:
+            cloud["cloud_phase_weight"] = template_medium["cloud_phase_weight"]
     medium = optical_medium(
         template_medium["x"].values,
         template_medium["y"].values,

@@ -1,0 +1,128 @@
+"""Residual-weighted gradients of the images with respect to every voxel's liquid water
+content and droplet effective radius, by the path score function of forward photons.
+
+For per-pixel weights r_d and a microphysical medium (LWC, r_eff) with Mie optics of one
+table (one band), g_v = sum_d r_d dI_d / d m_v for m = LWC and m = r_eff at fixed LWC:
+
+- d/d LWC = e(r_eff) d/d beta: LWC changes the cloud extinction beta = LWC e(r_eff) alone
+  (:func:`cloudct.physics.microphysics.extinction_part_of_gradient`), so the score-function
+  gradient in beta (:func:`cloudct.mc.gradient.score_function_gradient`'s, the GRADIENT pass)
+  gives it whole;
+- d/d r_eff = LWC e'(r_eff) d/d beta + the vertex terms of the score in r_eff at fixed beta:
+  every scattering vertex in voxel v adds d log(beta_s f_p(theta)) / d r_eff (the albedo's
+  and the two-row phase function's slopes, :func:`cloudct.physics.mixing.
+  reff_log_derivative`) at the angle the path turns through there, weighted as the vertex
+  term in beta is (path-recycling paper, Eqs. 44-46 and 76-77). A second pass of the same
+  photons (same seeds) deposits them (:data:`cloudct.mc.forward.REFF_GRADIENT`).
+
+Both derivatives come from the same photons, so each batch gives one sample of each, and
+the standard errors are those of the batch means. Unbiased where the score function is:
+wherever paths can scatter (it misses the in-scattering a first drop of water would bring
+where nothing scatters, as :func:`~cloudct.mc.gradient.score_function_gradient` does).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import xarray as xr
+
+from cloudct.mc.estimate import (
+    Sampling,
+    batch_means,
+    check_residual,
+    kernel_inputs,
+    mean_and_std_error,
+)
+from cloudct.mc.executor import BatchExecutor
+from cloudct.mc.forward import GRADIENT, REFF_GRADIENT
+from cloudct.mc.scene import Scene
+from cloudct.medium import is_microphysical, is_optical
+from cloudct.optics import GRID, phase_truncation, to_optical
+from cloudct.physics.microphysics import (
+    albedo_reff_derivative,
+    extinction_part_of_gradient,
+    reff_interval,
+)
+from cloudct.physics.mie import mie_table as load_mie_table
+
+
+def cloud_reff_slopes(lwc: np.ndarray, reff: np.ndarray, table: xr.Dataset) -> np.ndarray:
+    """float64[2, x, y, z]: d omega / d r_eff and d t / d r_eff = 1 / (r_{k+1} - r_k) of the
+    cloud in each voxel [1/micron] (0 where LWC = 0), the grid's ``cloud_reff_slopes``."""
+    cloudy = lwc > 0.0
+    table_reff = np.asarray(table["reff"].values, dtype=np.float64)
+    r = np.clip(reff, table_reff[0], table_reff[-1])
+    k, _ = reff_interval(r, table)
+    slopes = np.stack([albedo_reff_derivative(r, table),
+                       1.0 / (table_reff[k + 1] - table_reff[k])])
+    return np.ascontiguousarray(np.where(cloudy, slopes, 0.0))
+
+
+def microphysics_gradient(
+    medium: xr.Dataset,
+    scene: Scene,
+    residual: np.ndarray,
+    *,
+    photons: int,
+    mie_table: xr.Dataset | None = None,
+    seed: int = 0,
+    batches: int = 32,
+    rr_depth: int = 100,
+    rr_survival: float = 0.95,
+    aim_fraction: float | None = None,
+    progress: bool | None = None,
+    backend: str = "cpu",
+    executor: BatchExecutor | None = None,
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict]:
+    """sum_d residual_d dI_d / d LWC and / d r_eff per voxel by the path score function of
+    ``photons`` forward photons (module documentation).
+
+    Args:
+        medium: a microphysical medium (``lwc`` [g m-3], ``reff`` [micron]); its optics are
+            the Mie optics of ``mie_table`` (None: the default table of the medium's
+            ``wavelength`` attribute, else 0.672 micron).
+        scene, residual: the cameras and sun, and the per-pixel weights (view, row, col).
+        photons, seed, batches, rr_depth, rr_survival, aim_fraction, progress, backend,
+            executor: as for :func:`cloudct.mc.gradient.score_function_gradient`.
+
+    Returns:
+        ``(mean, std_error, info)``: ``mean`` and ``std_error`` map ``"lwc"`` [per g m-3]
+        and ``"reff"`` [per micron] to arrays over (x, y, z); ``info`` the photons and the
+        wall time of the two passes.
+
+    Raises:
+        ValueError: a medium that is not microphysical, or that carries a phase truncation
+            (whose cut share depends on r_eff: not differentiated).
+    """
+    if is_optical(medium) or not is_microphysical(medium):
+        raise ValueError("gradients in LWC and r_eff need a microphysical medium (lwc, reff) "
+                         "without an optical cloud description")
+    if mie_table is None:
+        mie_table = load_mie_table(wavelength=float(medium.attrs.get("wavelength", 0.672)),
+                                   veff=float(medium["veff"].max()) if "veff" in medium
+                                   else 0.1)
+    optical = to_optical(medium, mie_table, optics="mie")
+    if phase_truncation(optical):
+        raise ValueError("gradients in r_eff are not implemented with a phase truncation "
+                         "(the cut share depends on r_eff): remove the attribute "
+                         "phase_truncation")
+    lwc = medium["lwc"].transpose(*GRID).values.astype(np.float64)
+    reff = medium["reff"].transpose(*GRID).values.astype(np.float64)
+    sampling = Sampling(batches, seed, rr_depth, rr_survival, backend)
+    per_batch = sampling.per_batch(photons)
+    residual = check_residual(residual, scene)
+    k = kernel_inputs(optical, scene, aim_fraction)
+    run = dict(per_batch=per_batch, sampling=sampling, progress=progress, executor=executor)
+    in_beta, first = batch_means("forward", k, (GRADIENT, residual), desc="gradient", **run)
+    k_reff = k._replace(grid=k.grid._replace(
+        cloud_reff_slopes=cloud_reff_slopes(lwc, reff, mie_table)))
+    vertex, second = batch_means("forward", k_reff, (REFF_GRADIENT, residual),
+                                 desc="gradient in r_eff", **run)
+    d_lwc, d_reff = extinction_part_of_gradient(in_beta, lwc, reff, mie_table)
+    mean, std_error = {}, {}
+    for name, per_batch_values in (("lwc", d_lwc), ("reff", d_reff + vertex)):
+        mean[name], std_error[name] = mean_and_std_error(per_batch_values)
+    info = {"photons": per_batch * batches, "aim_fraction": k.cams.aim_fraction,
+            "wall_time": first["wall_time"] + second["wall_time"],
+            "events": first["events"] + second["events"], "backend": first["backend"]}
+    return mean, std_error, info
