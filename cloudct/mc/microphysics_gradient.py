@@ -82,8 +82,9 @@ def microphysics_gradient(
             the Mie optics of ``mie_table`` (None: the default table of the medium's
             ``wavelength`` attribute, else 0.672 micron).
         scene, residual: the cameras and sun, and the per-pixel weights (view, row, col).
-        photons, seed, batches, rr_depth, rr_survival, aim_fraction, progress, backend,
-            executor: as for :func:`cloudct.mc.gradient.score_function_gradient`.
+        photons: forward photons in all; seed, batches, rr_depth, rr_survival,
+            aim_fraction, progress, backend and executor as for
+            :func:`cloudct.mc.gradient.score_function_gradient`.
 
     Returns:
         ``(mean, std_error, info)``: ``mean`` and ``std_error`` map ``"lwc"`` [per g m-3]
