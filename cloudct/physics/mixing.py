@@ -47,7 +47,7 @@ class OpticalGrid(NamedTuple):
     transmittance_mode: np.ndarray
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def cell_phase_function(
     grid: OpticalGrid, bank: PhaseBank, j: int, ix: int, iy: int, iz: int, mu: float
 ) -> float:
@@ -158,7 +158,7 @@ def scattering_log_derivative(
     return num / den
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def reff_log_derivative(
     grid: OpticalGrid, bank: PhaseBank, ix: int, iy: int, iz: int, mu: float
 ) -> float:
