@@ -34,11 +34,17 @@ from cloudct.cli.run_options import (
 from cloudct.distributed import close_client, connect
 from cloudct.les import bundled_single_cloud, seed_paper_cloud_field
 from cloudct.mc.scene import Scene, build_scene
-from cloudct.measurements import save_measurements, synthesize_measurements
+from cloudct.measurements import (
+    band_measurements,
+    load_measurements,
+    save_measurements,
+    synthesize_measurements,
+)
 from cloudct.medium import cell_edges, load_medium, save_medium
 from cloudct.netcdf import load_netcdf, require_variables, save_netcdf
 from cloudct.optics import DEFAULT_OPTICS, optics_name, phase_truncation, to_optical
 from cloudct.output_files import exclusive
+from cloudct.physics.mie import DEFAULT_WAVELENGTH, mie_table
 from cloudct.retrieval.carving import carve, initial_medium
 from cloudct.retrieval.config import (
     AUTO,
@@ -56,6 +62,11 @@ from cloudct.retrieval.config_file import (
 )
 from cloudct.retrieval.loop import Retrieval
 from cloudct.retrieval.loss import BATCHES
+from cloudct.retrieval.microphysics import (
+    MicrophysicsRetrieval,
+    microphysical_first_guess,
+    retrieval_bands,
+)
 from cloudct.retrieval.photon_budget import target_seconds
 from cloudct.retrieval.priors import Prior, prior_text
 from cloudct.retrieval.report import write_report
@@ -227,6 +238,8 @@ def _retrieve_into(args: argparse.Namespace, output: Path, checkpoint: Path) -> 
     """``cloudct retrieve`` with its output and checkpoint held."""
     _refuse_overwrite(output, args.overwrite)
     settings, origins = run_settings(args)  # a bad --config file ends here, before any work
+    if tuple(settings.get("unknowns", RetrievalConfig.unknowns)) != RetrievalConfig.unknowns:
+        return _retrieve_microphysics(args, settings, output)
     asked = None if args.resume else config_from_settings(settings)
     measurements = retrieval_measurements(args.measurements, "retrieve")
     truth = load_medium(args.truth) if args.truth else None
@@ -248,6 +261,38 @@ def _retrieve_into(args: argparse.Namespace, output: Path, checkpoint: Path) -> 
     compiling = np.nansum(run.state.log["compile_seconds"])
     print(f"wrote {output} ({run.state.iteration} iterations, {run.state.elapsed:.0f} s, "
           f"{compiling:.0f} s of it compiling); checkpoint {checkpoint}")
+    return 0
+
+
+def _retrieve_microphysics(args: argparse.Namespace, settings: dict, output: Path) -> int:
+    """``cloudct retrieve --unknowns lwc reff``: LWC and r_eff from every band of the file
+    (:mod:`cloudct.retrieval.microphysics`). ``--init carve`` carves the band at 0.672
+    micron and turns its extinction into LWC at r_eff 10 micron; ``--init FILE`` reads a
+    microphysical medium. Checkpoints, resuming and Dask workers are refused."""
+    what = "--unknowns lwc reff"
+    if args.resume or args.checkpoint:
+        raise ValueError(f"{'--resume' if args.resume else '--checkpoint'}: the retrieval of "
+                         f"{what} writes no checkpoint yet, so it cannot resume; run it "
+                         "whole (its result is written at the end)")
+    if args.workers or args.scheduler:
+        raise ValueError(f"{'--workers' if args.workers else '--scheduler'}: {what} traces "
+                         "in this process only for now")
+    config = config_from_settings(settings)
+    measurements = load_measurements(args.measurements)
+    retrieval_bands(measurements)  # several bands, before any carving
+    truth = load_medium(args.truth) if args.truth else None
+    backend = chosen_backend(args)
+    if args.init == "carve":
+        red = band_measurements(measurements, DEFAULT_WAVELENGTH)
+        grid = medium_from_options(args.medium, "mie")
+        carved = initial_medium(carve(red, grid, backend=backend), grid)
+        initial = microphysical_first_guess(carved, mie_table(wavelength=DEFAULT_WAVELENGTH))
+    else:
+        initial = load_medium(args.init)
+    run = MicrophysicsRetrieval(measurements, initial, config, truth=truth, backend=backend)
+    result = run.run(progress=None)
+    save_netcdf(result, output, overwrite=True)  # refused before the run if not --overwrite
+    print(f"wrote {output} (lwc and reff, {run.iteration} iterations, {run.elapsed:.0f} s)")
     return 0
 
 
@@ -338,7 +383,7 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
         "it) and the defaults, in that order.",
     )
     r.add_argument("measurements", nargs="?", help="measurement netCDF; of a file with several "
-                   "bands, its 0.672 micron band")
+                   "bands, its 0.672 micron band (--unknowns lwc reff: every band)")
     r.add_argument("--init", default="carve", help="'carve' or an initial medium netCDF")
     r.add_argument("--medium", help="template medium for the grid and air (with --init carve)")
     r.add_argument("--truth", help="true medium netCDF: epsilon and delta are logged")

@@ -15,11 +15,13 @@ from cloudct.retrieval.config import (
     AUTO,
     AVERAGING,
     DEFAULT_PRIORS,
+    DEFAULT_REFF_PRIORS,
     IMAGE_METHODS,
     LEGACY_SPARSITY,
     OPTIMIZERS,
     RECYCLING,
     TRANSMITTANCE,
+    UNKNOWNS,
     RetrievalConfig,
     settings_for_optics,
 )
@@ -30,7 +32,14 @@ from cloudct.retrieval.config_file import (
     load_config,
 )
 from cloudct.retrieval.photon_budget import TARGET_SECONDS
-from cloudct.retrieval.priors import PRIOR_SCHEDULES, PRIORS, Prior, parse_prior, prior_text
+from cloudct.retrieval.priors import (
+    PRIOR_SCHEDULES,
+    PRIORS,
+    REFF_PRIORS,
+    Prior,
+    parse_prior,
+    prior_text,
+)
 from cloudct.retrieval.schedule import PLATEAU_ANSWERS, SCHEDULES
 
 #: Options of a run (argparse's dest) -> their :class:`RetrievalConfig` field.
@@ -41,7 +50,7 @@ OPTION_FIELDS = {dest: dest for dest in (
     "step_decay", "estimator", "pixel_sampling", "averaging", "averaging_decay", "seed",
     "checkpoint_every", "transmittance", "iteration_seconds", "schedule", "significance",
     "plateau", "photon_growth", "photon_cap", "step_floor", "max_change",
-    "phase_truncation", "image_method",
+    "phase_truncation", "image_method", "unknowns", "lwc_step", "reff_step",
 )} | {"fresh_gradient": "recycle_gradient",  # --fresh-gradient: recycle_gradient = false
       "prior": "priors"}
 OPTION_NAMES = {field: "--" + dest.replace("_", "-") for dest, field in OPTION_FIELDS.items()}
@@ -152,16 +161,29 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
                         f"{c.optimizer})")
     p.add_argument("--step", type=float,
                    help=f"step size [1/km per iteration] (adam, sgd; default {c.step})")
+    p.add_argument("--unknowns", nargs="+", choices=sorted({u for us in UNKNOWNS for u in us}),
+                   help="what is retrieved: extinction (the default; one band, of a file with "
+                        "several its 0.672 micron band), or lwc reff: liquid water content and "
+                        "droplet effective radius from a file with several bands "
+                        "(docs/retrieval_config.md, \"Liquid water and droplet size\")")
+    p.add_argument("--lwc-step", type=float,
+                   help="--unknowns lwc reff: the step in LWC [g m-3 per iteration] (default "
+                        f"{c.lwc_step})")
+    p.add_argument("--reff-step", type=float,
+                   help="--unknowns lwc reff: the step in r_eff [micron per iteration] "
+                        f"(default {c.reff_step})")
     p.add_argument("--trust-region", type=float,
                    help="lbfgsb: relative change of a voxel's extinction per window "
                         f"(default {c.trust_region})")
     p.add_argument("--prior", nargs="+", type=prior_option, metavar="TERM=WEIGHT[,...]",
                    help="the loss's prior terms, replacing the defaults: each "
                         "TERM=WEIGHT[,schedule=fixed|noise][,OPTION=VALUE...] with TERM one "
-                        f"of {', '.join(PRIORS)} (cloudct.retrieval.priors; the loss gains "
-                        "WEIGHT x the loss of a dark medium x the term), or none (default "
-                        f"{' '.join(prior_text(p) for p in DEFAULT_PRIORS)}; none with "
-                        "lbfgsb)")
+                        f"of {', '.join(PRIORS)} (in extinction) or, with --unknowns lwc "
+                        f"reff, {', '.join(REFF_PRIORS)} (in r_eff) (cloudct.retrieval.priors;"
+                        " the loss gains WEIGHT x the loss of a dark medium x the term), or "
+                        f"none (default {' '.join(prior_text(p) for p in DEFAULT_PRIORS)}; "
+                        "none with lbfgsb; with --unknowns lwc reff "
+                        f"{' '.join(prior_text(p) for p in DEFAULT_REFF_PRIORS)})")
     p.add_argument("--sparsity", type=float,
                    help="the L1 term alone at this weight [1/km^2] (0: no prior), as the runs "
                         "before the other terms had it; --prior l1=W,... combines terms")

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 from cloudct.mc.gradient import ESTIMATORS, camera_side_names, gradient_estimator
 from cloudct.mc.pixel_sampling import PIXEL_SAMPLINGS
-from cloudct.retrieval.priors import Prior, as_prior
+from cloudct.retrieval.priors import PRIORS, REFF_PRIORS, Prior, as_prior
 from cloudct.retrieval.schedule import PLATEAU_ANSWERS, SCHEDULES
 
 RECYCLING = ("none", "fixed", "adaptive")
@@ -33,6 +33,13 @@ IMAGE_METHODS = ("forward", "combined")
 #: The loss's prior terms by default with Adam or SGD (:mod:`cloudct.retrieval.priors`;
 #: none with L-BFGS-B).
 DEFAULT_PRIORS = (Prior("l1", 0.01, "noise"), Prior("smoothness", 1e-4, "noise"))
+#: What a retrieval retrieves: the cloud extinction (the seed paper's unknown) from one band,
+#: or the liquid water content and droplet effective radius from several bands
+#: (:mod:`cloudct.retrieval.microphysics`).
+UNKNOWNS = (("extinction",), ("lwc", "reff"))
+#: The loss's prior terms by default for the unknowns LWC and r_eff: r_eff smooth inside
+#: the cloud (:data:`cloudct.retrieval.priors.REFF_PRIORS`).
+DEFAULT_REFF_PRIORS = (Prior("reff_smoothness", 1e-3, "noise"),)
 #: The L1 term's weight [1/km^2] where a setting of the runs before the other terms
 #: (``sparsity_schedule`` without ``sparsity``) leaves it unset: their default.
 LEGACY_SPARSITY = 0.01
@@ -141,11 +148,24 @@ class RetrievalConfig:
     phase_truncation: float | None = None  # degrees: the Mie phase functions' forward peak
     # cut flat for the retrieval's paths (cloudct.optics; 0: the full peak; None: as the
     # initial medium records)
+    unknowns: tuple[str, ...] = ("extinction",)  # or ("lwc", "reff"): liquid water content
+    # and droplet effective radius from several bands (cloudct.retrieval.microphysics)
+    lwc_step: float = 0.02  # unknowns lwc reff: the step in LWC [g m-3 per iteration]
+    reff_step: float = 0.5  # unknowns lwc reff: the step in r_eff [micron per iteration]
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
             raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         self.stages = tuple(int(s) for s in self.stages)
+        self.unknowns = tuple(str(name) for name in self.unknowns)
+        if self.unknowns not in UNKNOWNS:
+            raise ValueError("unknowns must be one of "
+                             f"{' or '.join(' '.join(u) for u in UNKNOWNS)}, got "
+                             f"{' '.join(self.unknowns)}")
+        if self.microphysical:  # the score function of forward photons: uniform pixels
+            self.estimator = self.estimator or ("score",) * len(self.stages)
+            if self.priors is None:
+                self.priors = DEFAULT_REFF_PRIORS
         quasi_newton = self.optimizer == "lbfgsb"
         for name, kind, first_order, lbfgsb in PER_STAGE_DEFAULTS:  # None: the default
             default = lbfgsb if quasi_newton else first_order
@@ -158,6 +178,7 @@ class RetrievalConfig:
         terms = [p.term for p in self.priors]
         if len(set(terms)) < len(terms):
             raise ValueError(f"priors name a term twice: {terms}")
+        self._check_priors()
         if self.phase_truncation is not None and not 0.0 <= self.phase_truncation < 90.0:
             raise ValueError(f"phase_truncation must be in [0, 90) degrees, got "
                              f"{self.phase_truncation}")
@@ -224,6 +245,8 @@ class RetrievalConfig:
         if not 0.0 < self.step_decay <= 1.0:
             raise ValueError(f"step_decay must be in (0, 1], got {self.step_decay}")
         self._check_schedule()
+        if self.microphysical:
+            self._check_microphysics()
         if min(self.voxel_blocks) < 1:
             raise ValueError(f"voxel_blocks must be >= 1, got {self.voxel_blocks}")
         if self.photons != AUTO and not (isinstance(self.photons, int) and self.photons >= 1):
@@ -260,6 +283,50 @@ class RetrievalConfig:
                 "and minimises the sample-average loss alone: leave recycling at 'none', "
                 "voxel_blocks at 1, gradient_smoothing at 0 and no priors"
             )
+
+    @property
+    def microphysical(self) -> bool:
+        """Whether the unknowns are LWC and r_eff (:mod:`cloudct.retrieval.microphysics`)."""
+        return self.unknowns == ("lwc", "reff")
+
+    def _check_priors(self) -> None:
+        """The prior terms act on the unknowns: extinction terms or r_eff terms."""
+        terms = REFF_PRIORS if self.microphysical else PRIORS
+        for p in self.priors:
+            if p.term not in terms:
+                raise ValueError(
+                    f"prior {p.term} is a term in "
+                    f"{'extinction' if p.term in PRIORS else 'r_eff'}; the unknowns "
+                    f"{' '.join(self.unknowns)} take the terms {', '.join(terms)}")
+
+    def _check_microphysics(self) -> None:
+        """The settings the retrieval of LWC and r_eff supports (one line per refusal)."""
+        what = "unknowns lwc reff"
+        if not (self.lwc_step > 0.0 and self.reff_step > 0.0):
+            raise ValueError(f"lwc_step and reff_step must be > 0, got {self.lwc_step} and "
+                             f"{self.reff_step}")
+        refusals = (
+            (self.recycling != "none", f"recycling {self.recycling!r}: path recycling is not "
+             f"supported for the {what} yet; leave recycling at 'none'"),
+            (self.optimizer == "lbfgsb", f"optimizer 'lbfgsb' is not supported for the {what};"
+             " use adam or sgd"),
+            (self.transmittance != "exponential", f"transmittance {self.transmittance!r} is not"
+             f" supported for the {what}; leave it at 'exponential'"),
+            (set(self.estimator) != {"score"}, f"estimator {' '.join(self.estimator)}: the "
+             f"{what} are differentiated by the path score function of forward photons "
+             "alone (cloudct.mc.microphysics_gradient): use 'score'"),
+            (len(self.stages) > 1, f"{len(self.stages)} stages: the {what} are retrieved in "
+             "one stage (one [[stage]] row) for now"),
+            (self.photons == AUTO, f"photons 'auto' is not fitted to the device for the "
+             f"{what} yet: give a count (--photons N)"),
+            (bool(self.phase_truncation), f"phase_truncation {self.phase_truncation}: the "
+             "gradient in r_eff is not differentiated through a cut peak; set it to 0"),
+            (self.max_change is not None, f"max_change bounds the extinction's step; the {what}"
+             " have lwc_step and reff_step"),
+        )
+        for refused, why in refusals:
+            if refused:
+                raise ValueError(why)
 
     def _check_schedule(self) -> None:
         """The settings of :mod:`cloudct.retrieval.schedule`, each with its one-line error."""

@@ -40,7 +40,7 @@ from cloudct.retrieval.config import (
     PER_STAGE_DEFAULTS,
     RetrievalConfig,
 )
-from cloudct.retrieval.priors import PRIOR_SCHEDULES, PRIORS, Prior, as_prior
+from cloudct.retrieval.priors import PRIOR_SCHEDULES, TERMS, Prior, as_prior
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -115,6 +115,11 @@ RUN_KEYS = {k.name: k for k in (
     _run_key("phase_truncation", float, "degrees: Mie phase functions' forward peak cut flat "
              "for the retrieval's paths; 0 keeps it (unset: as the initial medium records; a "
              "Mie medium that records none: 3)", 3.0),
+    _run_key("unknowns", tuple, "what is retrieved: [\"extinction\"] (one band), or "
+             "[\"lwc\", \"reff\"] (liquid water content and effective radius, several bands)"),
+    _run_key("lwc_step", float, "unknowns lwc reff: the step in LWC [g m-3 per iteration]"),
+    _run_key("reff_step", float, "unknowns lwc reff: the step in r_eff [micron per "
+             "iteration]"),
     _run_key("seed", int, "seed of the photons: the same seed repeats the same iterates"),
     _run_key("checkpoint_every", int, "iterations between checkpoints"),
     _run_key("time_limit", float, "seconds of wall time after which the run stops (unset: "
@@ -144,7 +149,8 @@ DEPENDENT = ("gradient_smoothing", "image_photons", "estimator", "pixel_sampling
 PRIOR_KEYS = ("term", "weight", "schedule")
 #: The keys of files written before the prior terms: the L1 term's weight and schedule.
 LEGACY_PRIOR_KEYS = ("sparsity", "sparsity_schedule")
-_KINDS = {int: "an integer", float: "a number", str: "a string", bool: "true or false"}
+_KINDS = {int: "an integer", float: "a number", str: "a string", bool: "true or false",
+          tuple: "an array of strings"}
 #: Fields whose key also takes the string "auto" (a count chosen by the run).
 AUTO_KEYS = ("photons",)
 
@@ -204,7 +210,7 @@ def config_to_toml(config: RetrievalConfig, *, comments: bool = False,
     if comments:
         lines += ["", "# the loss's prior terms, one [[prior]] row each (prior = [] above: none;"
                   " unset: the", "# defaults, none with lbfgsb): term (one of "
-                  f"{', '.join(PRIORS)}), weight, schedule", f"# ({' or '.join(PRIOR_SCHEDULES)})"
+                  f"{', '.join(TERMS)}), weight, schedule", f"# ({' or '.join(PRIOR_SCHEDULES)})"
                   " and the term's options (docs/retrieval_config.md)"]
     for prior in config.priors:
         if comments or not commented:
@@ -228,6 +234,8 @@ def _typed(value: Any, key: Key, where: str) -> Any:
     ok = isinstance(value, key.kind) and not (key.kind is not bool and isinstance(value, bool))
     if key.kind is float and isinstance(value, int) and not isinstance(value, bool):
         value, ok = float(value), True
+    if key.kind is tuple and isinstance(value, list) and all(isinstance(v, str) for v in value):
+        value, ok = tuple(value), True
     if not ok:
         also = f' or "{AUTO}"' if key.field in AUTO_KEYS else ""
         raise ConfigFileError(f"{where}{key.name} must be {_KINDS[key.kind]}{also}, got "

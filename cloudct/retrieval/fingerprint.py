@@ -41,6 +41,8 @@ def run_id(measurements: xr.Dataset, config: RetrievalConfig) -> str:
         ignored.append("significance")
     if config.plateau == "step":
         ignored += ["plateau", "photon_growth", "photon_cap"]
+    if not config.microphysical:
+        ignored += ["unknowns", "lwc_step", "reff_step"]
     for name, before in (("step_floor", 0.0), ("max_change", None),
                          ("image_method", "forward")):
         if getattr(config, name) == before:

@@ -98,6 +98,9 @@ class Retrieval:
         backend: str = "cpu",
         client=None,
     ) -> None:
+        if config is not None and config.microphysical:
+            raise ValueError("Retrieval retrieves the cloud extinction; the unknowns lwc reff "
+                             "are cloudct.retrieval.microphysics.MicrophysicsRetrieval's")
         validate_medium(initial)
         # resolved once, here (on the workers with a client)
         self.backend = backend if client is not None else resolve_backend(backend)

@@ -31,6 +31,20 @@ its value nor its weight depends on the voxel size:
   the base to the top and 0 outside; the column's base, top and scale are those of the
   current medium that fit it best (each a cell edge), so the profile follows the medium.
 
+A retrieval of liquid water content and droplet effective radius from several bands
+(:mod:`cloudct.retrieval.microphysics`) takes the terms of :data:`REFF_PRIORS` instead, in
+r_eff [micron] over the cells that hold droplets (r_eff > 0: the retrieval keeps r_eff 0
+outside its hull), weighted in the same way:
+
+- ``reff_smoothness``: Phi = 1/2 sum_a c_a int (d r_eff / d x_a)^2 dV over neighbouring
+  cells that both hold droplets; its gradient is a discrete Laplacian of r_eff with the
+  opposite sign, which pulls each r_eff towards its neighbours' mean (the images tell the
+  droplets' size in the lit and viewed shell of the cloud, and the term carries it
+  inwards).
+- ``reff_growth``: droplets that grow with height, as they do in a cumulus (adiabatic
+  ascent: r_eff as the cube root of the height above the base; e.g. Tzabari et al. 2022):
+  Phi = 1/2 int max(0, -d r_eff / dz)^2 dV over vertical neighbours with droplets.
+
 Each term's function returns ``(Phi, dPhi / d beta)`` from one call (its gradient exact
 almost everywhere, tested against finite differences of its value); the records of
 :data:`PRIORS` hold what each penalises, its equation's reference and its options, read
@@ -101,6 +115,25 @@ def _rho(g: np.ndarray, huber: float) -> tuple[np.ndarray, np.ndarray]:
     return value, np.where(inner, g / huber, np.sign(g))
 
 
+def _face_area(grid: PriorGrid, axis: int) -> np.ndarray:
+    """The area [km^2] of the faces between neighbouring cells along ``axis``, shaped to
+    broadcast."""
+    area = np.ones((1, 1, 1))
+    for other in {0, 1, 2} - {axis}:
+        area = area * _along(grid.widths[other], other)
+    return area
+
+
+def _add_pair_flux(gradient: np.ndarray, flux: np.ndarray, axis: int) -> None:
+    """Add each neighbour pair's ``flux`` (the derivative of its term in the upper cell's
+    value, minus that in the lower's) to ``gradient``."""
+    lower = [slice(None)] * 3
+    upper = [slice(None)] * 3
+    lower[axis], upper[axis] = slice(None, -1), slice(1, None)
+    gradient[tuple(upper)] += flux
+    gradient[tuple(lower)] -= flux
+
+
 def smoothness(beta: np.ndarray, grid: PriorGrid, horizontal: float = 1.0,
                vertical: float = 1.0, huber: float = 0.0) -> tuple[float, np.ndarray]:
     """sum_a c_a int rho(d beta / d x_a) dV [km] and its gradient (module docstring): each
@@ -111,17 +144,11 @@ def smoothness(beta: np.ndarray, grid: PriorGrid, horizontal: float = 1.0,
         if weight == 0.0 or beta.shape[axis] < 2:
             continue
         h = _along(grid.spacings[axis], axis)
-        area = np.ones((1, 1, 1))
-        for other in {0, 1, 2} - {axis}:
-            area = area * _along(grid.widths[other], other)
+        area = _face_area(grid, axis)
         rho, slope = _rho(np.diff(beta, axis=axis) / h, huber)
         value += weight * float(np.sum(area * h * rho))
-        flux = weight * area * slope  # d/d beta_2 of the pair's term; -flux for beta_1
-        lower = [slice(None)] * 3
-        upper = [slice(None)] * 3
-        lower[axis], upper[axis] = slice(None, -1), slice(1, None)
-        gradient[tuple(upper)] += flux
-        gradient[tuple(lower)] -= flux
+        # d/d beta_2 of the pair's term; -flux for beta_1
+        _add_pair_flux(gradient, weight * area * slope, axis)
     return value, gradient
 
 
@@ -179,6 +206,48 @@ def adiabatic(beta: np.ndarray, grid: PriorGrid) -> tuple[float, np.ndarray]:
     return float(np.sum(grid.volume * departure**2)), 2.0 * grid.volume * departure
 
 
+def _droplet_pairs(reff: np.ndarray, grid: PriorGrid, axis: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Along ``axis``: each neighbour pair's difference r_2 - r_1 where both cells hold
+    droplets (r_eff > 0; 0 elsewhere), the distance h between their centres and the area A
+    of their common face [km], shaped to broadcast."""
+    droplets = reff > 0.0
+    both = np.logical_and(np.delete(droplets, -1, axis=axis), np.delete(droplets, 0, axis=axis))
+    return (np.where(both, np.diff(reff, axis=axis), 0.0), _along(grid.spacings[axis], axis),
+            _face_area(grid, axis))
+
+
+def reff_smoothness(reff: np.ndarray, grid: PriorGrid, horizontal: float = 1.0,
+                    vertical: float = 1.0) -> tuple[float, np.ndarray]:
+    """1/2 sum_a c_a int (d r_eff / d x_a)^2 dV over the cloud [micron^2 km] and its
+    gradient, a discrete Laplacian of r_eff with the opposite sign (module docstring):
+    each pair of neighbouring cells that both hold droplets (r_eff > 0; the retrieval of
+    LWC and r_eff keeps r_eff 0 outside its hull) contributes c_a A (r_2 - r_1)^2 / (2 h).
+    r_eff of clear cells means nothing, so pairs with one do not count."""
+    value, gradient = 0.0, np.zeros_like(reff)
+    for axis, weight in enumerate((horizontal, horizontal, vertical)):
+        if weight == 0.0 or reff.shape[axis] < 2:
+            continue
+        difference, h, area = _droplet_pairs(reff, grid, axis)
+        value += weight * float(np.sum(area * difference**2 / (2.0 * h)))
+        _add_pair_flux(gradient, weight * area * difference / h, axis)
+    return value, gradient
+
+
+def reff_growth(reff: np.ndarray, grid: PriorGrid) -> tuple[float, np.ndarray]:
+    """1/2 int max(0, -d r_eff / dz)^2 dV over the cloud [micron^2 km] and its gradient:
+    each vertical pair of cells that both hold droplets contributes dx dy max(0, r_k -
+    r_(k+1))^2 / (2 h), so droplets that shrink going up cost the square of their fall
+    (a soft penalty: in a cumulus they grow with height, module docstring)."""
+    if reff.shape[2] < 2:
+        return 0.0, np.zeros_like(reff)
+    difference, h, area = _droplet_pairs(reff, grid, 2)
+    fall = np.maximum(-difference, 0.0)
+    gradient = np.zeros_like(reff)
+    _add_pair_flux(gradient, -area * fall / h, 2)
+    return float(np.sum(area * fall**2 / (2.0 * h))), gradient
+
+
 class PriorTerm(NamedTuple):
     """A registered loss term: its name, what it penalises, its equation's source, the
     units of its weight (Phi's reciprocal), its options with their defaults, and its
@@ -211,6 +280,23 @@ PRIORS = {t.name: t for t in (
 )}
 
 
+#: The loss terms in the droplet effective radius of a retrieval of LWC and r_eff
+#: (``unknowns = ("lwc", "reff")``, :mod:`cloudct.retrieval.microphysics`), by name; each
+#: function takes r_eff [micron], 0 where there are no droplets.
+REFF_PRIORS = {t.name: t for t in (
+    PriorTerm("reff_smoothness", "r_eff's spatial gradient inside the cloud, squared "
+              "(horizontal and vertical multiples)",
+              "Tikhonov regularisation (squared first differences) of r_eff",
+              "micron-2 km-1",
+              {"horizontal": 1.0, "vertical": 1.0}, reff_smoothness),
+    PriorTerm("reff_growth", "r_eff that falls with height inside the cloud, squared",
+              "adiabatic cumulus: r_eff grows with height (e.g. Tzabari et al. 2022)",
+              "micron-2 km-1", {}, reff_growth),
+)}
+#: Every registered term by name: :data:`PRIORS` (extinction) and :data:`REFF_PRIORS`.
+TERMS = {**PRIORS, **REFF_PRIORS}
+
+
 @dataclass
 class Prior:
     """A term of a run's loss: the registered ``term``, its ``weight`` (in the term's
@@ -223,15 +309,15 @@ class Prior:
     options: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if self.term not in PRIORS:
-            raise ValueError(f"prior term must be one of {tuple(PRIORS)}, got {self.term!r}")
+        if self.term not in TERMS:
+            raise ValueError(f"prior term must be one of {tuple(TERMS)}, got {self.term!r}")
         self.weight = float(self.weight)
         if not (np.isfinite(self.weight) and self.weight >= 0.0):
             raise ValueError(f"prior {self.term}: weight must be >= 0, got {self.weight}")
         if self.schedule not in PRIOR_SCHEDULES:
             raise ValueError(f"prior {self.term}: schedule must be one of {PRIOR_SCHEDULES}, "
                              f"got {self.schedule!r}")
-        known = PRIORS[self.term].options
+        known = TERMS[self.term].options
         unknown = sorted(set(self.options) - set(known))
         if unknown:
             raise ValueError(f"prior {self.term}: unknown option {unknown[0]!r} (its options: "
@@ -243,8 +329,9 @@ class Prior:
                              f"{self.options[bad[0]]}")
 
     def value_and_gradient(self, beta: np.ndarray, grid: PriorGrid) -> tuple[float, np.ndarray]:
-        """The term's Phi and dPhi / d beta (unweighted) at ``beta``."""
-        record = PRIORS[self.term]
+        """The term's Phi and dPhi / d beta (unweighted) at ``beta`` (r_eff for the terms of
+        :data:`REFF_PRIORS`)."""
+        record = TERMS[self.term]
         return record.function(beta, grid, **{**record.options, **self.options})
 
 

@@ -1,0 +1,412 @@
+"""The retrieval of liquid water content (LWC) and droplet effective radius (r_eff) from
+measurements in several bands (issue 53): ``RetrievalConfig(unknowns=("lwc", "reff"))``,
+``cloudct retrieve --unknowns lwc reff``.
+
+Droplets absorb in the shortwave infrared (1.65, 2.13 micron) in proportion to their size,
+and the extinction per unit of water falls as 1 / r_eff, so the images of several bands
+tell LWC and r_eff apart where one band sees only the extinction. The loss is the sum of
+every band's (seed paper Eq. 41) plus prior terms in r_eff::
+
+    L(LWC, r_eff) = sum_b 1/2 sum_d w_bd (I_bd - m_bd)^2
+                    + L_empty sum_j w_j m_j Phi_j(r_eff),
+    dL / dLWC_v = sum_b sum_d r_bd dI_bd / dLWC_v,
+    dL / dr_eff_v = sum_b sum_d r_bd dI_bd / dr_eff_v + L_empty sum_j w_j m_j dPhi_j / dr_eff_v,
+
+with r_bd = w_bd (I_bd - m_bd) the residual of band b, I_bd rendered through the band's
+Mie table (:func:`cloudct.optics.band_optics`), its derivatives by the path score function
+of forward photons (:func:`cloudct.mc.microphysics_gradient.microphysics_gradient`: the
+extinction's, the albedo's and the phase function's terms), L_empty the loss of a dark
+medium summed over the bands and Phi_j the r_eff terms of
+:data:`cloudct.retrieval.priors.REFF_PRIORS` (weights and schedules as for the extinction's
+terms). Each iteration takes one projected step on both fields, each with its own
+optimiser (:func:`cloudct.retrieval.optimizers.make_optimizer`): LWC's step
+``lwc_step`` [g m-3] and r_eff's ``reff_step`` [micron]. With Adam (the default) every
+voxel moves by about its step per iteration whatever the scale of its gradient (Adam
+divides by the root mean square of the gradient), which is what puts two fields of other
+units and gradients of other scales on one footing. The feasible set: LWC >= 0 in the mask
+(the carved hull) and 0 outside; r_eff within the range of r_eff that every band's Mie table
+covers, in the mask, and 0 outside (clear cells: r_eff means nothing there, and the r_eff
+terms count only cells with droplets).
+
+The first guess (:func:`microphysical_first_guess`) is the carved extinction turned into
+LWC at a constant r_eff, :data:`FIRST_GUESS_REFF` = 10 micron: LWC = beta / e(10 micron),
+e the table's extinction per unit LWC (:mod:`cloudct.physics.microphysics`). A constant
+leaves the images to tell the r_eff profile (the r_eff gradient can move it either way)
+and does not presume a cloud base that the carving knows only to a voxel or two.
+
+This first version keeps the steps and photons fixed (no plateau schedule, no iterate
+average: the result is the last iterate) and runs one stage; path recycling, checkpoints
+and resuming, L-BFGS-B, a non-exponential transmittance, a phase truncation and Dask
+workers are refused by the configuration or here.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import xarray as xr
+from tqdm.auto import tqdm
+
+from cloudct.mc.backend import device_description, resolve_backend
+from cloudct.mc.microphysics_gradient import microphysics_gradient
+from cloudct.mc.render import render
+from cloudct.mc.scene import Scene
+from cloudct.mc.visibility import boundary_optical_distance
+from cloudct.measurements import (
+    BAND,
+    BAND_TOLERANCE,
+    band_measurements,
+    band_wavelengths,
+    coarse_measurements,
+)
+from cloudct.medium import is_microphysical, is_optical, microphysical_medium, validate_medium
+from cloudct.optics import GRID, band_optics, to_optical
+from cloudct.physics.microphysics import extinction_lwc_derivative
+from cloudct.physics.mie import DEFAULT_VEFF, mie_table
+from cloudct.retrieval.config import RetrievalConfig
+from cloudct.retrieval.config_file import config_to_toml
+from cloudct.retrieval.loss import BATCHES, image_loss, loss_std_error, pixel_weights
+from cloudct.retrieval.metrics import (
+    SHELLS,
+    epsilon_delta,
+    reff_absolute_error,
+    reff_relative_error,
+)
+from cloudct.retrieval.optimizers import block_mean, make_optimizer, smoothed_gradient
+from cloudct.retrieval.priors import PriorGrid
+from cloudct.retrieval.schedule import noise_weight
+
+LOGGER = logging.getLogger(__name__)
+
+#: The first guess's effective radius [micron] (module documentation).
+FIRST_GUESS_REFF = 10.0
+#: The optical distance from the cloud's lit and viewed boundary within which the log's
+#: ``_near`` errors are taken: the images' reach (the veiled core lies beyond).
+NEAR = SHELLS[-1]
+#: The columns of the per-iteration log (``log_*`` over ``iteration``): units, long name.
+LOG_FIELDS = {
+    "loss": ("1", "loss summed over the bands, seed paper Eq. (41)"),
+    "loss_std_error": ("1", "Monte Carlo standard error of the loss"),
+    "prior": ("1", "the r_eff terms' part of the loss at the iterate the step started from"),
+    "lwc_epsilon": ("1", "epsilon of LWC, seed paper Eq. (54)"),
+    "lwc_delta": ("1", "delta of LWC, seed paper Eq. (54)"),
+    "reff_absolute_error": ("micron", "mean |r_eff error| over the true cloud"),
+    "reff_relative_error": ("1", "mean |r_eff error| / r_eff over the true cloud"),
+    "reff_absolute_error_near": ("micron", f"mean |r_eff error| over the true cloud within "
+                                 f"optical distance {NEAR:g} of its lit and viewed boundary"),
+    "reff_relative_error_near": ("1", f"mean |r_eff error| / r_eff over the true cloud "
+                                 f"within optical distance {NEAR:g} of its boundary"),
+    "photons": ("1", "photons of the iteration, all bands: images' and gradients'"),
+    "seconds": ("s", "cumulative wall time"),
+}
+
+#: The log's columns that need a truth.
+ERROR_FIELDS = tuple(key for key in LOG_FIELDS if key.startswith(("lwc_", "reff_")))
+
+
+@dataclass
+class BandsLossGradient:
+    """A loss evaluation over bands: the loss and each band's, its standard error, and its
+    gradients in ``"lwc"`` [per g m-3] and ``"reff"`` [per micron] over (x, y, z) with
+    their standard errors; ``info``: the gradients' wall time and photons."""
+
+    loss: float
+    band_losses: np.ndarray
+    loss_std_error: float
+    gradient: dict[str, np.ndarray]
+    std_error: dict[str, np.ndarray]
+    info: dict
+
+
+def loss_and_gradient_over_bands(
+    medium: xr.Dataset,
+    bands: Sequence[xr.Dataset],
+    tables: Sequence[xr.Dataset],
+    *,
+    photons: int,
+    gradient_photons: int | None = None,
+    seed: int = 0,
+    weights: Sequence[np.ndarray] | None = None,
+    method: str = "forward",
+    batches: int = BATCHES,
+    backend: str = "cpu",
+) -> BandsLossGradient:
+    """The loss of the microphysical ``medium`` against one-band measurement sets
+    ``bands``, summed over the bands, and its gradients in LWC and r_eff (module
+    documentation).
+
+    Band b is rendered with its Mie table ``tables[b]`` (its wavelength the band's) by
+    ``photons`` of ``method`` (:func:`cloudct.mc.render.render`) with seed ``2 (seed + b)``,
+    its residual taken with ``weights[b]`` (default :func:`~cloudct.retrieval.loss.
+    pixel_weights`) by :func:`~cloudct.retrieval.loss.image_loss`, and its gradients
+    estimated by :func:`~cloudct.mc.microphysics_gradient.microphysics_gradient` with
+    ``gradient_photons`` (default ``photons``) on independent paths, seed ``2 (seed + b) +
+    1``. The bands' gradients and losses add up; their standard errors add in quadrature
+    (independent paths)."""
+    wavelengths = [float(band.attrs["wavelength"]) for band in bands]
+    weights = [pixel_weights(band) for band in bands] if weights is None else weights
+    optical = band_optics(medium, wavelengths, mie_tables=tables, optics="mie")
+    losses, variance = [], 0.0
+    gradient = {name: 0.0 for name in ("lwc", "reff")}
+    error = {name: 0.0 for name in ("lwc", "reff")}
+    info = {"wall_time": 0.0, "photons": 0}
+    for b, (band, table, w, optics) in enumerate(zip(bands, tables, weights, optical,
+                                                      strict=True)):
+        scene = Scene.from_dataset(band)
+        images = render(optics, scene, photons=photons, method=method, seed=2 * (seed + b),
+                        batches=batches, progress=False, backend=backend)
+        loss, residual = image_loss(images["radiance"].values, band["radiance"].values, w)
+        losses.append(loss)
+        variance += loss_std_error(residual, images["radiance_std_error"].values) ** 2
+        mean, std_error, band_info = microphysics_gradient(
+            medium, scene, residual, photons=gradient_photons or photons, mie_table=table,
+            seed=2 * (seed + b) + 1, batches=batches, progress=False, backend=backend)
+        for name in gradient:
+            gradient[name] = gradient[name] + mean[name]
+            error[name] = error[name] + std_error[name] ** 2
+        info["wall_time"] += band_info["wall_time"]
+        info["photons"] += band_info["photons"]
+    return BandsLossGradient(float(sum(losses)), np.array(losses), math.sqrt(variance),
+                             gradient, {k: np.sqrt(v) for k, v in error.items()}, info)
+
+
+def microphysical_first_guess(initial: xr.Dataset, table: xr.Dataset,
+                              reff: float = FIRST_GUESS_REFF) -> xr.Dataset:
+    """The microphysical medium of an optical one (e.g. the carved start,
+    :func:`cloudct.retrieval.carving.initial_medium`): LWC = beta / e(``reff``) [g m-3]
+    and r_eff = ``reff`` [micron] where the cloud extinction beta > 0 (0 elsewhere), e the
+    extinction per unit LWC of ``table``, whose wavelength must be the extinction's; the
+    grid and the air (at the wavelength it was given at) are kept."""
+    if not is_optical(initial):
+        raise ValueError("the first guess of LWC and r_eff is made from a cloud extinction "
+                         "(an optical medium, e.g. the carved start)")
+    at = float(initial.attrs.get("wavelength", table.attrs["wavelength"]))
+    if abs(at - float(table.attrs["wavelength"])) > BAND_TOLERANCE:
+        raise ValueError(f"the extinction is at {at:g} micron, the Mie table at "
+                         f"{float(table.attrs['wavelength']):g}: give that band's table")
+    beta = initial["cloud_extinction"].transpose(*GRID).values.astype(float)
+    cloudy = beta > 0.0
+    per_lwc = extinction_lwc_derivative(np.zeros_like(beta), np.full(beta.shape, reff), table)
+    air_at = initial.attrs.get("air_extinction_wavelength", initial.attrs.get("wavelength"))
+    return microphysical_medium(
+        initial["x"].values, initial["y"].values, initial["z"].values,
+        np.where(cloudy, beta / per_lwc, 0.0), np.where(cloudy, reff, 0.0),
+        z_bounds=initial["z_bounds"].values if "z_bounds" in initial else None,
+        air_extinction=initial["air_extinction"], air_albedo=float(initial["air_albedo"]),
+        air_extinction_wavelength=None if air_at is None else float(air_at),
+        title="cloudct first guess of LWC and r_eff",
+        source=f"cloudct.retrieval.microphysics.microphysical_first_guess: the cloud "
+        f"extinction at {at:g} micron as LWC at r_eff {reff:g} micron",
+    ).assign_attrs(optics="mie")
+
+
+def retrieval_bands(measurements: xr.Dataset) -> np.ndarray:
+    """The wavelengths [micron] of a measurement set with several bands; a ValueError in
+    one line for a set of one band."""
+    wavelengths = band_wavelengths(measurements)
+    if BAND not in measurements.dims or wavelengths.size < 2:
+        held = ", ".join(f"{w:g}" for w in wavelengths) or "an unrecorded wavelength"
+        raise ValueError(f"the unknowns lwc reff need measurements in several bands (e.g. "
+                         f"cloudct synth --bands 0.672 1.65 2.13); these hold one band "
+                         f"({held} micron)")
+    return wavelengths
+
+
+class MicrophysicsRetrieval:
+    """A retrieval of LWC and r_eff from measurements in several bands (module
+    documentation).
+
+    ``measurements`` hold two bands or more (docs/measurements.md, "Bands"); ``initial`` is
+    a microphysical medium (:func:`microphysical_first_guess` makes one from a carved
+    extinction) whose grid, air and v_eff are kept; ``mask`` (x, y, z booleans, default:
+    where the initial LWC is positive) bounds the cloud; ``truth`` (optional, microphysical)
+    gives the log's errors; ``mie_tables`` one table per band (default: each band's
+    :func:`~cloudct.physics.mie.mie_table` at the initial medium's v_eff).
+    """
+
+    def __init__(
+        self,
+        measurements: xr.Dataset,
+        initial: xr.Dataset,
+        config: RetrievalConfig,
+        *,
+        mask: np.ndarray | None = None,
+        truth: xr.Dataset | None = None,
+        mie_tables: Sequence[xr.Dataset] | None = None,
+        backend: str = "cpu",
+    ) -> None:
+        if not config.microphysical:
+            raise ValueError("MicrophysicsRetrieval retrieves the unknowns lwc reff; the "
+                             "extinction is cloudct.retrieval.loop.Retrieval's")
+        wavelengths = retrieval_bands(measurements)
+        if is_optical(initial) or not is_microphysical(initial):
+            raise ValueError("the unknowns lwc reff start from a microphysical medium (lwc, "
+                             "reff); the initial medium is optical (cloud extinction): "
+                             "microphysical_first_guess turns it into one (cloudct retrieve "
+                             "--unknowns lwc reff --init carve does)")
+        validate_medium(initial)
+        self.config = config
+        self.backend = resolve_backend(backend)
+        veff = float(initial["veff"].max()) if "veff" in initial else DEFAULT_VEFF
+        self.tables = ([mie_table(wavelength=float(w), veff=veff) for w in wavelengths]
+                       if mie_tables is None else list(mie_tables))
+        if len(self.tables) != wavelengths.size:
+            raise ValueError(f"{len(self.tables)} Mie tables for {wavelengths.size} bands")
+        self.wavelengths = wavelengths
+        self.bands = [coarse_measurements(band_measurements(measurements, w), config.stages[0])
+                      for w in wavelengths]
+        self.weights = [pixel_weights(band) for band in self.bands]
+        self.empty_loss = sum(image_loss(np.zeros_like(band["radiance"].values),
+                                         band["radiance"].values, w)[0]
+                              for band, w in zip(self.bands, self.weights, strict=True))
+        self.template = initial
+        lwc = initial["lwc"].transpose(*GRID).values.astype(float)
+        self.mask = lwc > 0.0 if mask is None else np.asarray(mask, dtype=bool)
+        if self.mask.shape != lwc.shape:
+            raise ValueError("the mask's grid differs from the initial medium's")
+        self.reff_range = (max(float(t["reff"].values[0]) for t in self.tables),
+                           min(float(t["reff"].values[-1]) for t in self.tables))
+        self.lwc = np.where(self.mask, lwc, 0.0)
+        self.reff = self._bounded(initial["reff"].transpose(*GRID).values.astype(float))
+        self.optimizers = {"lwc": make_optimizer(config.optimizer, config.lwc_step),
+                           "reff": make_optimizer(config.optimizer, config.reff_step)}
+        self._prior_grid = PriorGrid.of(initial)
+        self.truth = None if truth is None else self._true_fields(truth)
+        self.iteration, self.elapsed, self.noise_reference = 0, 0.0, 0.0
+        self.log: dict[str, list[float]] = {key: [] for key in LOG_FIELDS}
+        self.band_losses: list[np.ndarray] = []
+        LOGGER.info("unknowns lwc reff: steps %g g m-3 and %g micron and %d photons kept "
+                    "fixed (no plateau schedule), the last iterate returned (no average)",
+                    config.lwc_step, config.reff_step, config.photons)
+
+    def _bounded(self, reff: np.ndarray) -> np.ndarray:
+        """r_eff clipped to the tables' range in the mask, 0 outside."""
+        return np.where(self.mask, np.clip(reff, *self.reff_range), 0.0)
+
+    def _true_fields(self, truth: xr.Dataset) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The true LWC and r_eff, and each voxel's optical distance from the cloud's lit
+        and viewed boundary in the shortest band."""
+        if is_optical(truth) or not is_microphysical(truth):
+            raise ValueError("the true medium of the unknowns lwc reff must be microphysical "
+                             "(lwc, reff)")
+        lwc = truth["lwc"].transpose(*GRID).values.astype(float)
+        if lwc.shape != self.mask.shape:
+            raise ValueError("the true medium's grid differs from the initial medium's")
+        distance = boundary_optical_distance(to_optical(truth, self.tables[0], optics="mie"),
+                                             Scene.from_dataset(self.bands[0]))
+        return lwc, truth["reff"].transpose(*GRID).values.astype(float), distance
+
+    def medium(self) -> xr.Dataset:
+        """The current medium: the initial one with the current LWC and r_eff."""
+        out = self.template.copy(deep=True)
+        out["lwc"] = out["lwc"].transpose(*GRID).copy(data=self.lwc.copy())
+        out["reff"] = out["reff"].transpose(*GRID).copy(data=self.reff.copy())
+        return out
+
+    def prior(self, multiple: float = 1.0) -> tuple[float, np.ndarray | float]:
+        """The r_eff terms' part of the loss at the current r_eff and its gradient:
+        L_empty sum_j w_j m_j Phi_j(r_eff), m_j = ``multiple`` for a term whose schedule is
+        ``noise`` (as :meth:`cloudct.retrieval.loop.Retrieval.prior`)."""
+        value, gradient = 0.0, 0.0
+        for p in self.config.priors:
+            phi, d_phi = p.value_and_gradient(self.reff, self._prior_grid)
+            scale = p.weight * self.empty_loss * (multiple if p.schedule == "noise" else 1.0)
+            value += scale * phi
+            gradient = gradient + scale * d_phi
+        return value, gradient
+
+    def errors(self) -> dict[str, float]:
+        """The current iterate's errors against the truth (the log's columns; NaN without
+        a truth)."""
+        if self.truth is None:
+            return dict.fromkeys(ERROR_FIELDS, math.nan)
+        lwc, reff, distance = self.truth
+        epsilon, delta = epsilon_delta(lwc, self.lwc)
+        near = distance < NEAR
+        return {"lwc_epsilon": epsilon, "lwc_delta": delta,
+                "reff_absolute_error": reff_absolute_error(lwc, reff, self.reff),
+                "reff_relative_error": reff_relative_error(lwc, reff, self.reff),
+                "reff_absolute_error_near": reff_absolute_error(lwc, reff, self.reff, near),
+                "reff_relative_error_near": reff_relative_error(lwc, reff, self.reff, near)}
+
+    def step(self) -> dict[str, float]:
+        """One iteration: the loss and gradients over the bands, the r_eff terms, and one
+        projected step on each field; returns the log's row."""
+        cfg = self.config
+        start = time.perf_counter()
+        photons, gradient_photons = cfg.photons_at(0)
+        ev = loss_and_gradient_over_bands(
+            self.medium(), self.bands, self.tables, photons=photons,
+            gradient_photons=gradient_photons,
+            seed=cfg.seed * 1_000_003 + self.iteration * len(self.bands),
+            weights=self.weights, method=cfg.image_method, backend=self.backend)
+        multiple, rms = noise_weight(ev.std_error["reff"], self.mask, self.noise_reference)
+        self.noise_reference = self.noise_reference or rms
+        prior, prior_gradient = self.prior(multiple)
+        gradients = {"lwc": ev.gradient["lwc"], "reff": ev.gradient["reff"] + prior_gradient}
+        stepped = {}
+        for name, now in (("lwc", self.lwc), ("reff", self.reff)):
+            gradient = smoothed_gradient(block_mean(gradients[name], self.mask,
+                                                    cfg.voxel_blocks[0]),
+                                         self.mask, cfg.gradient_smoothing[0])
+            stepped[name] = self.optimizers[name].update(now, gradient, self.mask)
+        self.lwc, self.reff = stepped["lwc"], self._bounded(stepped["reff"])
+        self.elapsed += time.perf_counter() - start
+        self.iteration += 1
+        row = {"loss": ev.loss, "loss_std_error": ev.loss_std_error, "prior": prior,
+               **self.errors(), "photons": (photons + gradient_photons) * len(self.bands),
+               "seconds": self.elapsed}
+        for key in LOG_FIELDS:
+            self.log[key].append(float(row[key]))
+        self.band_losses.append(ev.band_losses)
+        return row
+
+    def run(self, *, progress: bool | None = None) -> xr.Dataset:
+        """Iterate until ``config.iterations`` (or its time limit); return the result."""
+        cfg = self.config
+        bar = tqdm(total=cfg.iterations, initial=self.iteration,
+                   disable=None if progress is None else not progress, desc="retrieve",
+                   unit="it")
+        try:
+            while self.iteration < cfg.iterations:
+                if cfg.time_limit is not None and self.elapsed >= cfg.time_limit:
+                    break
+                row = self.step()
+                bar.update(1)
+                bar.set_postfix(loss=f"{row['loss']:.3g}")
+        finally:
+            bar.close()
+        return self.result()
+
+    def result(self) -> xr.Dataset:
+        """The retrieved medium (``lwc``, ``reff``) with the carved mask, the log over
+        ``iteration`` (``log_band_loss`` over (iteration, band) too) and the run's
+        settings."""
+        ds = self.medium().assign_coords(
+            iteration=np.arange(1, self.iteration + 1),
+            wavelength=(BAND, self.wavelengths, {"units": "micron",
+                                                 "long_name": "band wavelength"}))
+        for key, (units, name) in LOG_FIELDS.items():
+            ds[f"log_{key}"] = ("iteration", np.array(self.log[key], dtype=float),
+                                {"units": units, "long_name": name})
+        ds["log_band_loss"] = (("iteration", BAND),
+                               np.reshape(self.band_losses, (self.iteration, -1)),
+                               {"units": "1", "long_name": "each band's loss, Eq. (41)"})
+        ds["cloud_mask"] = (GRID, self.mask.astype(np.int8),
+                            {"units": "1", "long_name": "carved cloud hull (1 = inside)"})
+        ds.attrs.update(
+            title="cloudct retrieval of LWC and r_eff", unknowns="lwc reff",
+            config=json.dumps(asdict(self.config)),
+            config_toml=config_to_toml(self.config, header="cloudct retrieve --config FILE "
+                                       "re-runs this retrieval (docs/retrieval_config.md)"),
+            iterations_done=self.iteration, elapsed_s=self.elapsed,
+            reff_range=list(self.reff_range), reff_range_units="micron",
+            backend=self.backend, device=device_description(self.backend),
+        )
+        return ds

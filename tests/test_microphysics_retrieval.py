@@ -1,0 +1,301 @@
+"""The retrieval of LWC and r_eff from several bands (cloudct.retrieval.microphysics,
+``cloudct retrieve --unknowns lwc reff``): its loss and gradient over bands against the
+per-band pieces it sums, a tiny retrieval that lowers the loss and the r_eff error, its
+bounds, its refusals, the command line, and the r_eff terms and error metrics it uses.
+
+The scene is tiny (a 4 x 4 x 3-cell cloud in a 6 x 6 x 5 grid of 50 m cells, three 8 x 8
+cameras, coarse Mie tables at 0.672 and 2.13 micron) so that each test runs in seconds."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from cloudct.cli import main
+from cloudct.mc.cameras import Camera
+from cloudct.mc.microphysics_gradient import microphysics_gradient
+from cloudct.mc.render import render
+from cloudct.mc.scene import Scene
+from cloudct.mc.sun import Sun
+from cloudct.measurement_bands import stack_bands
+from cloudct.measurements import band_measurements, synthesize_measurements
+from cloudct.medium import microphysical_medium, optical_medium, save_medium
+from cloudct.netcdf import save_netcdf
+from cloudct.optics import to_optical
+from cloudct.physics.mie import compute_mie_table
+from cloudct.retrieval.config import RetrievalConfig
+from cloudct.retrieval.loop import Retrieval
+from cloudct.retrieval.loss import image_loss, pixel_weights
+from cloudct.retrieval.metrics import reff_absolute_error, reff_relative_error
+from cloudct.retrieval.microphysics import (
+    MicrophysicsRetrieval,
+    loss_and_gradient_over_bands,
+    microphysical_first_guess,
+)
+from cloudct.retrieval.priors import PriorGrid, reff_growth, reff_smoothness
+
+WAVELENGTHS = (0.672, 2.13)
+TABLE_REFF = [4.0, 7.0, 10.0, 13.0, 16.0, 20.0]
+ANGLES = [0.0, 1.0, 2.0, 4.0, 8.0, 15.0, 30.0, 60.0, 90.0, 120.0, 140.0, 160.0, 175.0, 180.0]
+CLOUD = (slice(1, 5), slice(1, 5), slice(1, 4))
+#: r_eff of the true cloud's three levels [micron]: droplets grow with height
+TRUE_REFF = (6.0, 10.0, 15.0)
+
+
+@pytest.fixture(scope="module")
+def tables():
+    """Coarse Mie tables of the two bands (r_eff 4-20 micron)."""
+    return [compute_mie_table(w, reff=TABLE_REFF, angles=ANGLES) for w in WAVELENGTHS]
+
+
+def cloud_of(lwc: float, reff) -> xr.Dataset:
+    """A 4 x 4 x 3-cell cloud of ``lwc`` [g m-3] and r_eff per level ``reff`` [micron]."""
+    axis = (np.arange(6) + 0.5) * 0.05
+    lwc_field = np.zeros((6, 6, 5))
+    lwc_field[CLOUD] = lwc
+    reff_field = np.zeros_like(lwc_field)
+    reff_field[CLOUD] = np.asarray(reff, dtype=float)[None, None, :]
+    return microphysical_medium(axis, axis, axis[:5] + 0.5, lwc_field, reff_field,
+                                air_extinction=0.04).assign_attrs(optics="mie")
+
+
+def scene() -> Scene:
+    c = (0.15, 0.15, 0.65)
+    return Scene([Camera((0.15, 0.15, 1.6), c, (0, 1, 0), fov=25.0, nrows=8, ncols=8),
+                  Camera((0.9, 0.15, 1.3), c, (0, 0, 1), fov=30.0, nrows=8, ncols=8),
+                  Camera((0.15, -0.6, 1.3), c, (0, 0, 1), fov=30.0, nrows=8, ncols=8)],
+                 Sun(zenith=20.0, azimuth=30.0), "open")
+
+
+@pytest.fixture(scope="module")
+def truth():
+    return cloud_of(0.2, TRUE_REFF)
+
+
+@pytest.fixture(scope="module")
+def measurements(tables, truth):
+    """The true cloud's images in both bands, 200 000 forward photons each."""
+    return stack_bands([
+        synthesize_measurements(to_optical(truth, table, optics="mie"), scene(),
+                                photons=200_000, seed=i, method="forward", wavelength=w)
+        for i, (table, w) in enumerate(zip(tables, WAVELENGTHS, strict=True))])
+
+
+def config(**settings) -> RetrievalConfig:
+    base = dict(unknowns=("lwc", "reff"), photons=3000, stages=(1,), image_photons=(1.0,),
+                lwc_step=0.005, reff_step=1.0, priors=())
+    return RetrievalConfig(**{**base, **settings})
+
+
+def test_the_loss_and_gradient_over_bands_are_the_sums_of_each_bands(tables, truth,
+                                                                        measurements):
+    """Each band: its images (seed 2 (seed + b)), its weighted loss and residual
+    (image_loss) and microphysics_gradient (seed 2 (seed + b) + 1) with its table: the
+    function's loss, gradients and standard errors are their sums (in quadrature)."""
+    start = cloud_of(0.3, (10.0, 10.0, 10.0))
+    bands = [band_measurements(measurements, w) for w in WAVELENGTHS]
+    ev = loss_and_gradient_over_bands(start, bands, tables, photons=2000,
+                                      gradient_photons=1000, seed=4)
+    loss, gradient, variance = 0.0, {"lwc": 0.0, "reff": 0.0}, {"lwc": 0.0, "reff": 0.0}
+    for b, (band, table) in enumerate(zip(bands, tables, strict=True)):
+        images = render(to_optical(start, table, optics="mie"), scene(), photons=2000,
+                        seed=2 * (4 + b), progress=False)
+        band_loss, residual = image_loss(images["radiance"].values, band["radiance"].values,
+                                         pixel_weights(band))
+        assert ev.band_losses[b] == band_loss
+        loss += band_loss
+        mean, std_error, _ = microphysics_gradient(start, scene(), residual, photons=1000,
+                                                   mie_table=table, seed=2 * (4 + b) + 1,
+                                                   progress=False)
+        for name in gradient:
+            gradient[name] = gradient[name] + mean[name]
+            variance[name] = variance[name] + std_error[name] ** 2
+    assert ev.loss == pytest.approx(loss, rel=1e-14)
+    for name in gradient:
+        np.testing.assert_allclose(ev.gradient[name], gradient[name], rtol=1e-13, atol=0.0)
+        np.testing.assert_allclose(ev.std_error[name], np.sqrt(variance[name]), rtol=1e-13)
+
+
+@pytest.fixture(scope="module")
+def retrieval(tables, truth, measurements):
+    """Ten iterations from 1.5 x the true LWC with r_eff 10 micron everywhere in the
+    cloud, 6000 gradient photons each."""
+    start = cloud_of(0.3, (10.0, 10.0, 10.0))
+    run = MicrophysicsRetrieval(measurements, start,
+                                config(iterations=10, photons=6000, lwc_step=0.01),
+                                truth=truth, mie_tables=tables)
+    start_error = run.errors()["reff_absolute_error"]
+    return start, start_error, run, run.run(progress=False)
+
+
+def test_a_retrieval_lowers_the_loss_and_the_reff_error(retrieval, tables, truth):
+    """The r_eff error's mean over the last three iterations is below 0.9 x the start's
+    (3 micron), and the loss, evaluated with the combined estimator's images (no fireflies)
+    at three seeds, common to the start and the end, falls by more than three standard
+    errors of the seeds' differences."""
+    start, start_error, run, result = retrieval
+    assert start_error == pytest.approx(3.0)
+    assert np.mean(result["log_reff_absolute_error"].values[-3:]) < 0.9 * start_error
+    differences = []
+    for seed in range(3):
+        first, last = (loss_and_gradient_over_bands(m, run.bands, tables, photons=4000,
+                                                    gradient_photons=32, seed=100 + 10 * seed,
+                                                    method="combined").loss
+                       for m in (start, run.medium()))
+        differences.append(first - last)
+    mean = np.mean(differences)
+    assert mean > 3.0 * np.std(differences, ddof=1) / np.sqrt(3), differences
+
+
+def test_the_result_holds_lwc_reff_and_the_log(retrieval):
+    _, _, run, result = retrieval
+    assert result["lwc"].attrs["units"] == "g m-3" and result["reff"].attrs["units"] == "micron"
+    assert result.sizes["iteration"] == 10 and result["log_band_loss"].shape == (10, 2)
+    np.testing.assert_allclose(result["log_band_loss"].sum("band"), result["log_loss"])
+    np.testing.assert_array_equal(result["wavelength"].values, WAVELENGTHS)
+    for name in ("lwc_epsilon", "lwc_delta", "reff_relative_error",
+                 "reff_absolute_error_near", "reff_relative_error_near"):
+        assert np.all(np.isfinite(result[f"log_{name}"].values)), name
+    assert result.attrs["unknowns"] == "lwc reff"
+    assert RetrievalConfig(**json.loads(result.attrs["config"])) == run.config
+
+
+def test_the_steps_keep_the_bounds(tables, truth, measurements):
+    """Large steps from a start that fills more than the mask: r_eff stays within the
+    tables' range (and reaches its ends), LWC >= 0 (and reaches 0), both 0 outside the
+    mask."""
+    start = cloud_of(0.2, (10.0, 10.0, 10.0))
+    start["lwc"].values[0, :, :] = 0.3  # outside the mask below
+    start["reff"].values[0, :, :] = 12.0
+    mask = truth["lwc"].values > 0
+    run = MicrophysicsRetrieval(measurements, start, config(iterations=3, lwc_step=0.3,
+                                                            reff_step=8.0),
+                                mask=mask, mie_tables=tables)
+    result = run.run(progress=False)
+    lwc, reff = result["lwc"].values, result["reff"].values
+    assert np.all(lwc[~mask] == 0.0) and np.all(reff[~mask] == 0.0)
+    assert lwc.min() == 0.0 and np.any(lwc[mask] == 0.0)
+    assert reff[mask].min() >= 4.0 and reff[mask].max() <= 20.0
+    assert np.any(np.isin(reff[mask], (4.0, 20.0)))
+
+
+def test_bad_inputs_are_refused_in_one_line(tables, truth, measurements):
+    one_band = band_measurements(measurements, 0.672)
+    with pytest.raises(ValueError, match=r"several bands.*one band \(0.672 micron\)"):
+        MicrophysicsRetrieval(one_band, truth, config(), mie_tables=tables[:1])
+    optical = to_optical(truth, tables[0], optics="mie")
+    bare = optical_medium(optical["x"].values, optical["y"].values, optical["z"].values,
+                          optical["cloud_extinction"].values)
+    with pytest.raises(ValueError, match="start from a microphysical medium"):
+        MicrophysicsRetrieval(measurements, bare, config(), mie_tables=tables)
+    with pytest.raises(ValueError, match="recycling 'fixed': path recycling is not supported"):
+        config(recycling="fixed")
+    with pytest.raises(ValueError, match="photons 'auto'"):
+        config(photons="auto")
+    with pytest.raises(ValueError, match="estimator sm"):
+        config(estimator=("sm",))
+    with pytest.raises(ValueError, match="prior l1 is a term in extinction"):
+        config(priors=({"term": "l1", "weight": 0.01},))
+    with pytest.raises(ValueError, match="prior reff_smoothness is a term in r_eff"):
+        RetrievalConfig(priors=({"term": "reff_smoothness", "weight": 0.01},))
+    with pytest.raises(ValueError, match="unknowns must be one of"):
+        RetrievalConfig(unknowns=("lwc",))
+    with pytest.raises(ValueError, match="MicrophysicsRetrieval's"):
+        Retrieval(one_band, optical, config())
+
+
+def test_the_first_guess_holds_the_extinction_as_lwc(tables, truth):
+    optical = to_optical(truth, tables[0], optics="mie")
+    guess = microphysical_first_guess(optical, tables[0], reff=10.0)
+    cloudy = truth["lwc"].values > 0
+    np.testing.assert_array_equal(guess["reff"].values, np.where(cloudy, 10.0, 0.0))
+    back = to_optical(guess, tables[0], optics="mie")["cloud_extinction"].values
+    np.testing.assert_allclose(back, optical["cloud_extinction"].values, rtol=1e-12)
+    assert float(guess["air_extinction"]) == pytest.approx(0.04)  # given at 0.672 micron
+    with pytest.raises(ValueError, match="the Mie table at 2.13"):
+        microphysical_first_guess(optical, tables[1])
+
+
+def test_the_command_line_retrieves_lwc_and_reff(tmp_path, capsys, truth):
+    """cloudct synth --bands 0.672 1.65 2.13 of the tiny cloud, then cloudct retrieve
+    --unknowns lwc reff from its carved start: lwc and reff written; its refusals."""
+    save_medium(truth, tmp_path / "cloud.nc")
+    save_netcdf(scene().to_dataset(), tmp_path / "scene.nc")
+    bands = str(tmp_path / "bands.nc")
+    assert main(["synth", str(tmp_path / "cloud.nc"), "--scene", str(tmp_path / "scene.nc"),
+                 "--bands", "0.672", "1.65", "2.13", "--photons", "20000", "--backend",
+                 "cpu", "-o", bands]) == 0
+    common = [bands, "--unknowns", "lwc", "reff", "--medium", str(tmp_path / "cloud.nc"),
+              "--photons", "1000", "--backend", "cpu"]
+    out = tmp_path / "result.nc"
+    assert main(["retrieve", *common, "--iterations", "2", "--truth",
+                 str(tmp_path / "cloud.nc"), "-o", str(out)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    result = xr.load_dataset(out)
+    assert result["lwc"].attrs["units"] == "g m-3" and result["reff"].attrs["units"] == "micron"
+    assert result.sizes["iteration"] == 2 and result.sizes["band"] == 3
+    assert np.all(np.isfinite(result["log_reff_absolute_error"].values))
+    for extra, message in ((["--recycling", "fixed"], "path recycling is not supported"),
+                           (["--resume"], "--resume: the retrieval of --unknowns lwc reff "
+                            "writes no checkpoint"),
+                           (["--photons", "auto"], "photons 'auto'")):
+        assert main(["retrieve", *common, *extra, "-o", str(tmp_path / "x.nc")]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, err
+    one = tmp_path / "red.nc"
+    assert main(["synth", str(tmp_path / "cloud.nc"), "--scene", str(tmp_path / "scene.nc"),
+                 "--optics", "mie", "--photons", "2000", "--backend", "cpu", "-o",
+                 str(one)]) == 0
+    capsys.readouterr()
+    assert main(["retrieve", str(one), *common[1:], "-o", str(tmp_path / "x.nc")]) == 2
+    err = capsys.readouterr().err
+    assert "need measurements in several bands" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "x.nc").exists()
+
+
+# --- the r_eff terms and the r_eff errors, by hand -----------------------------------------
+
+
+def test_the_reff_terms_by_hand():
+    """Two columns of 20 m x 20 m cells 40 m apart vertically: the r_eff terms count only
+    neighbours that both hold droplets, with their hand-computed values and gradients."""
+    x = np.array([0.01, 0.03])
+    medium = optical_medium(x, np.array([0.01, 0.03]), np.array([0.02, 0.06, 0.10]),
+                            np.zeros((2, 2, 3)))
+    grid = PriorGrid.of(medium)
+    reff = np.zeros((2, 2, 3))
+    reff[0, 0, :] = [12.0, 10.0, 0.0]  # falls by 2 going up, then a clear cell
+    reff[1, 0, :] = [9.0, 10.0, 11.0]  # beside the first column at the two lower levels
+    area_z, area_x = 0.02 * 0.02, 0.02 * 0.04
+    # pairs: vertical (12, 10) and (9, 10), (10, 11); horizontal (12, 9), (10, 10)
+    expected = (area_z * (4 + 1 + 1) / (2 * 0.04) + area_x * 9 / (2 * 0.02))
+    value, gradient = reff_smoothness(reff, grid)
+    assert value == pytest.approx(expected, rel=1e-12)
+    assert gradient[0, 0, 0] == pytest.approx(area_z * 2 / 0.04 + area_x * 3 / 0.02)
+    assert gradient[0, 0, 2] == 0.0 and gradient[0, 1, 0] == 0.0  # clear cells
+    value, gradient = reff_growth(reff, grid)
+    assert value == pytest.approx(area_z * 4 / (2 * 0.04), rel=1e-12)
+    np.testing.assert_allclose(gradient[0, 0], [area_z * 2 / 0.04, -area_z * 2 / 0.04, 0.0])
+    assert not gradient[1].any()
+    for term in (reff_smoothness, reff_growth):  # the gradient is that of the value
+        h, direction = 1e-6, np.where(reff > 0, np.random.default_rng(1).normal(size=reff.shape),
+                                      0.0)
+        fd = (term(reff + h * direction, grid)[0] - term(reff - h * direction, grid)[0]) / (2 * h)
+        assert fd == pytest.approx(np.sum(term(reff, grid)[1] * direction), rel=1e-6)
+
+
+def test_the_reff_errors_by_hand():
+    truth_lwc = np.array([0.0, 0.2, 0.4, 0.1])
+    truth_reff = np.array([5.0, 8.0, 12.0, 16.0])
+    reff = np.array([20.0, 10.0, 9.0, 16.0])  # the clear voxel does not count
+    assert reff_absolute_error(truth_lwc, truth_reff, reff) == pytest.approx(5.0 / 3.0)
+    assert reff_relative_error(truth_lwc, truth_reff, reff) == pytest.approx(
+        (2 / 8 + 3 / 12 + 0) / 3)
+    near = np.array([True, True, False, False])
+    assert reff_absolute_error(truth_lwc, truth_reff, reff, near) == pytest.approx(2.0)
+    assert np.isnan(reff_relative_error(truth_lwc, truth_reff, reff, np.zeros(4, bool)))
+    with pytest.raises(ValueError, match="true LWC is zero everywhere"):
+        reff_absolute_error(np.zeros(4), truth_reff, reff)
