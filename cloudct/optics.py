@@ -338,12 +338,27 @@ def _delta_scaled(ds: xr.Dataset, cloud: xr.DataArray, fractions: np.ndarray | N
     albedo = _on_grid(ds["cloud_albedo"], cloud)
     if fractions is None:
         return cloud.values, albedo, weight, None
-    k = ds["cloud_phase_index"].transpose(*GRID).values
-    f_next = fractions[np.minimum(k + 1, fractions.size - 1)]
-    f = (1.0 - weight) * fractions[k] + weight * f_next
+    f_row, f_next = _cell_shares(ds, fractions)
+    f = (1.0 - weight) * f_row + weight * f_next
     scale = 1.0 - albedo * f
     weight = np.where(weight > 0.0, weight * (1.0 - f_next) / (1.0 - f), 0.0)
     return cloud.values * scale, albedo * (1.0 - f) / scale, weight, scale
+
+
+def _cell_shares(ds: xr.Dataset, fractions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The cut shares f_k and f_{k+1} of each cell's two phase-function rows, over (x, y, z)."""
+    k = ds["cloud_phase_index"].transpose(*GRID).values
+    return fractions[k], fractions[np.minimum(k + 1, fractions.size - 1)]
+
+
+def peak_shares(optical_medium: xr.Dataset) -> tuple[np.ndarray, np.ndarray] | None:
+    """The shares f_k and f_{k+1} of scattering that the phase truncation cuts from each
+    cell's two tabulated rows (:func:`cloudct.physics.phase.truncated_peak`), float64[x, y,
+    z] each; None where the medium has no phase truncation."""
+    truncation = phase_truncation(optical_medium)
+    if truncation == 0.0:
+        return None
+    return _cell_shares(optical_medium, _peak_fractions(optical_medium, truncation)[1])
 
 
 def cloud_extinction_scale(optical_medium: xr.Dataset) -> np.ndarray | None:

@@ -4,7 +4,9 @@ The extinction and albedo derivatives are checked against central finite differe
 ``cloudct.optics.to_optical``, which computes the optics with ``np.interp`` and shares no
 code with the derivative formulas; d log p / d r_eff against finite differences of the
 interpolated phase function; the chain rule against a finite difference of a quadratic loss
-of the extinction, computed through ``to_optical``.
+of the extinction, computed through ``to_optical``; the slopes of the optics a phase
+truncation leaves (``delta_scaled_reff_slopes``) against finite differences of the kernel
+arrays (``kernel_arrays_and_scale``), whose delta-scaling shares no code with them.
 
 Error budget of a central difference (f(r + h) - f(r - h)) / (2h): truncation
 h^2 f''' / 6 + O(h^4), and rounding at most 2 k eps max|f| / (2h) when each value of f
@@ -20,8 +22,9 @@ rounding of r +- h itself adds nothing.
 import numpy as np
 import pytest
 
+from cloudct.mc.microphysics_gradient import cloud_reff_slopes
 from cloudct.medium import microphysical_medium
-from cloudct.optics import to_optical
+from cloudct.optics import kernel_arrays_and_scale, peak_shares, to_optical
 from cloudct.physics.microphysics import (
     albedo_reff_derivative,
     cloud_extinction,
@@ -225,3 +228,33 @@ def test_chain_rule_against_a_quadratic_loss_of_the_extinction(table):
             (l_plus, e_plus), (l_minus, e_minus) = loss(*args[0]), loss(*args[1])
             step = plus[v] - minus[v]
             assert abs((l_plus - l_minus) / step - exact) <= (e_plus + e_minus) / step
+
+
+def cut_optics(reff, table):
+    """The kernels' delta-scaled cloud albedo, next-row weight and log(beta' / beta) of a
+    2x2x2 medium whose phase functions are cut at 5 degrees, flattened."""
+    medium = microphysical_medium([0.01, 0.03], [0.01, 0.03], [0.01, 0.03], grid(LWC),
+                                  grid(reff)).assign_attrs(phase_truncation=5.0)
+    kernel_grid, _, scale = kernel_arrays_and_scale(to_optical(medium, table, optics="mie"))
+    return np.stack([kernel_grid.albedo[1].ravel(), kernel_grid.phase_weight[1].ravel(),
+                     np.log(scale).ravel()])
+
+
+def test_slopes_of_the_cut_optics_against_kernel_arrays(table):
+    # the delta-scaled omega', t' and beta' / beta are rational in r_eff inside an interval:
+    # the central difference's truncation error c h^2 is bounded by |fd(2h) - fd(h)| =
+    # 3 c h^2 + O(h^4), to which the rounding bound is added
+    medium = microphysical_medium([0.01, 0.03], [0.01, 0.03], [0.01, 0.03], grid(LWC),
+                                  grid(REFF)).assign_attrs(phase_truncation=5.0)
+    optical = to_optical(medium, table, optics="mie")
+    slopes, d_log_scale = cloud_reff_slopes(grid(LWC), grid(REFF), table, peak_shares(optical))
+    exact = np.stack([slopes[0].ravel(), slopes[1].ravel(), d_log_scale.ravel()])
+    fd, rounding = central(lambda r: cut_optics(r, table), REFF, H)
+    fd_2h = central(lambda r: cut_optics(r, table), REFF, 2 * H)[0]
+    error = np.abs(fd - exact)
+    print("omega', t', log s slopes", exact, "errors", error)
+    assert np.all(error <= np.abs(fd_2h - fd) + rounding)
+    # the cut matters: the full optics' slopes differ by far more than that
+    full = cloud_reff_slopes(grid(LWC), grid(REFF), table)[0]
+    assert np.all(np.abs(full.reshape(2, -1) - exact[:2]) > 10 * (error[:2] + rounding[:2]))
+    assert np.all(np.abs(exact[2]) > 10 * (error[2] + rounding[2]))

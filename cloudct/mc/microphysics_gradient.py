@@ -15,6 +15,12 @@ table (one band), g_v = sum_d r_d dI_d / d m_v for m = LWC and m = r_eff at fixe
   term in beta is (path-recycling paper, Eqs. 44-46 and 76-77). A second pass of the same
   photons (same seeds) deposits them (:data:`cloudct.mc.forward.REFF_GRADIENT`).
 
+With a phase truncation (the medium's ``phase_truncation``, :mod:`cloudct.optics`) the
+kernels trace delta-scaled optics beta' = beta (1 - omega f), omega' and t', whose cut share
+f moves with r_eff: the grid then carries d omega' / d r_eff and d t' / d r_eff, and the
+extinction's part gains beta d log(1 - omega f) / d r_eff
+(:func:`cloudct.physics.microphysics.delta_scaled_reff_slopes`).
+
 Both derivatives come from the same photons, so each batch gives one sample of each, and
 the standard errors are those of the batch means. Unbiased where the score function is:
 wherever paths can scatter (it misses the in-scattering a first drop of water would bring
@@ -32,30 +38,43 @@ from cloudct.mc.estimate import (
     check_residual,
     kernel_inputs,
     mean_and_std_error,
+    per_cloud_extinction,
 )
 from cloudct.mc.executor import BatchExecutor
 from cloudct.mc.forward import GRADIENT, REFF_GRADIENT
 from cloudct.mc.scene import Scene
 from cloudct.medium import is_microphysical, is_optical
-from cloudct.optics import GRID, phase_truncation, to_optical
+from cloudct.optics import GRID, peak_shares, to_optical
 from cloudct.physics.microphysics import (
     albedo_reff_derivative,
+    delta_scaled_reff_slopes,
     extinction_part_of_gradient,
     reff_interval,
+    single_scattering_albedo,
 )
 from cloudct.physics.mie import mie_table as load_mie_table
 
 
-def cloud_reff_slopes(lwc: np.ndarray, reff: np.ndarray, table: xr.Dataset) -> np.ndarray:
+def cloud_reff_slopes(
+    lwc: np.ndarray, reff: np.ndarray, table: xr.Dataset,
+    shares: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray | float]:
     """float64[2, x, y, z]: d omega / d r_eff and d t / d r_eff = 1 / (r_{k+1} - r_k) of the
-    cloud in each voxel [1/micron] (0 where LWC = 0), the grid's ``cloud_reff_slopes``."""
+    cloud in each voxel [1/micron] (0 where LWC = 0), the grid's ``cloud_reff_slopes``, and
+    d log(beta' / beta) / d r_eff (0 without a truncation). With the cut shares f_k,
+    f_{k+1} of a phase truncation (:func:`cloudct.optics.peak_shares`), the slopes of the
+    delta-scaled omega' and t' the kernels trace."""
     cloudy = lwc > 0.0
     table_reff = np.asarray(table["reff"].values, dtype=np.float64)
     r = np.clip(reff, table_reff[0], table_reff[-1])
-    k, _ = reff_interval(r, table)
-    slopes = np.stack([albedo_reff_derivative(r, table),
-                       1.0 / (table_reff[k + 1] - table_reff[k])])
-    return np.ascontiguousarray(np.where(cloudy, slopes, 0.0))
+    k, t = reff_interval(r, table)
+    slopes = [albedo_reff_derivative(r, table), 1.0 / (table_reff[k + 1] - table_reff[k])]
+    d_log_scale = 0.0
+    if shares is not None:
+        *slopes, d_log_scale = delta_scaled_reff_slopes(
+            single_scattering_albedo(r, table), t, *slopes, *shares)
+        d_log_scale = np.where(cloudy, d_log_scale, 0.0)
+    return np.ascontiguousarray(np.where(cloudy, np.stack(slopes), 0.0)), d_log_scale
 
 
 def microphysics_gradient(
@@ -80,7 +99,8 @@ def microphysics_gradient(
     Args:
         medium: a microphysical medium (``lwc`` [g m-3], ``reff`` [micron]); its optics are
             the Mie optics of ``mie_table`` (None: the default table of the medium's
-            ``wavelength`` attribute, else 0.672 micron).
+            ``wavelength`` attribute, else 0.672 micron), their peak cut where it has a
+            ``phase_truncation``.
         scene, residual: the cameras and sun, and the per-pixel weights (view, row, col).
         photons: forward photons in all; seed, batches, rr_depth, rr_survival,
             aim_fraction, progress, backend and executor as for
@@ -92,8 +112,7 @@ def microphysics_gradient(
         wall time of the two passes.
 
     Raises:
-        ValueError: a medium that is not microphysical, or that carries a phase truncation
-            (whose cut share depends on r_eff: not differentiated).
+        ValueError: a medium that is not microphysical.
     """
     if is_optical(medium) or not is_microphysical(medium):
         raise ValueError("gradients in LWC and r_eff need a microphysical medium (lwc, reff) "
@@ -103,10 +122,6 @@ def microphysics_gradient(
                                    veff=float(medium["veff"].max()) if "veff" in medium
                                    else 0.1)
     optical = to_optical(medium, mie_table, optics="mie")
-    if phase_truncation(optical):
-        raise ValueError("gradients in r_eff are not implemented with a phase truncation "
-                         "(the cut share depends on r_eff): remove the attribute "
-                         "phase_truncation")
     lwc = medium["lwc"].transpose(*GRID).values.astype(np.float64)
     reff = medium["reff"].transpose(*GRID).values.astype(np.float64)
     sampling = Sampling(batches, seed, rr_depth, rr_survival, backend)
@@ -115,11 +130,13 @@ def microphysics_gradient(
     k = kernel_inputs(optical, scene, aim_fraction)
     run = dict(per_batch=per_batch, sampling=sampling, progress=progress, executor=executor)
     in_beta, first = batch_means("forward", k, (GRADIENT, residual), desc="gradient", **run)
-    k_reff = k._replace(grid=k.grid._replace(
-        cloud_reff_slopes=cloud_reff_slopes(lwc, reff, mie_table)))
+    slopes, d_log_scale = cloud_reff_slopes(lwc, reff, mie_table, peak_shares(optical))
+    k_reff = k._replace(grid=k.grid._replace(cloud_reff_slopes=slopes))
     vertex, second = batch_means("forward", k_reff, (REFF_GRADIENT, residual),
                                  desc="gradient in r_eff", **run)
+    in_beta = per_cloud_extinction(k, in_beta)  # d/d beta' -> d/d beta
     d_lwc, d_reff = extinction_part_of_gradient(in_beta, lwc, reff, mie_table)
+    d_reff = d_reff + in_beta * optical["cloud_extinction"].transpose(*GRID).values * d_log_scale
     mean, std_error = {}, {}
     for name, per_batch_values in (("lwc", d_lwc), ("reff", d_reff + vertex)):
         mean[name], std_error[name] = mean_and_std_error(per_batch_values)

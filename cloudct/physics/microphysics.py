@@ -38,6 +38,9 @@ extinction a first drop of water would bring.
 respect to beta per voxel (what the estimators of :mod:`cloudct.mc.gradient` return). The
 albedo and phase-function parts of d loss / d r_eff come from the Monte Carlo path score
 function instead (see its documentation); they are not computed here.
+
+:func:`delta_scaled_reff_slopes` carries the r_eff slopes through a phase truncation
+(:func:`cloudct.physics.phase.truncated_peak`), whose cut share f moves with r_eff too.
 """
 
 from __future__ import annotations
@@ -240,3 +243,39 @@ def extinction_part_of_gradient(
     lwc, reff, _ = _microphysics(lwc, reff, table)
     e, slope = _linear(reff, table, "ext_per_lwc")
     return grad * e, grad * lwc * slope
+
+
+def delta_scaled_reff_slopes(
+    albedo: ArrayLike, weight: ArrayLike, d_albedo: ArrayLike, d_weight: ArrayLike,
+    share: ArrayLike, share_next: ArrayLike,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The slopes in r_eff of the optics a phase truncation leaves, from the full optics'.
+
+    A cell mixes the rows k and k + 1 with weight t (slope dt = ``d_weight``); their cuts
+    remove the shares f_k = ``share`` and f_{k+1} = ``share_next`` of scattering, the
+    cell's f = (1 - t) f_k + t f_{k+1}, so df = (f_{k+1} - f_k) dt. The delta-scaled optics
+    (:func:`cloudct.optics.kernel_arrays_and_scale`, Wiscombe 1977) are
+
+        beta' = beta s,  s = 1 - omega f,
+        omega' = omega (1 - f) / s,
+        t' = t (1 - f_{k+1}) / (1 - f),
+
+    whence, with d = d / d r_eff,
+
+        d omega' = [(1 - f) d omega - omega (1 - omega) df] / s^2,
+        d t'     = (1 - f_k) (1 - f_{k+1}) dt / (1 - f)^2,
+        d log s  = -(f d omega + omega df) / s.
+
+    Returns ``(d_albedo', d_weight', d_log_scale)`` [per micron], broadcast together: the
+    kernels' albedo and next-row weight slopes (the vertex terms of the score in r_eff at
+    fixed beta') and the relative slope of beta' / beta (a part of the extinction's term).
+    """
+    omega, t, d_omega, dt, f_k, f_next = np.broadcast_arrays(
+        *(np.asarray(a, dtype=np.float64) for a in (albedo, weight, d_albedo, d_weight,
+                                                    share, share_next)))
+    f = (1.0 - t) * f_k + t * f_next
+    df = (f_next - f_k) * dt
+    s = 1.0 - omega * f
+    d_omega_cut = ((1.0 - f) * d_omega - omega * (1.0 - omega) * df) / s**2
+    d_weight_cut = (1.0 - f_k) * (1.0 - f_next) * dt / (1.0 - f) ** 2
+    return d_omega_cut, d_weight_cut, -(f * d_omega + omega * df) / s

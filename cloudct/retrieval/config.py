@@ -319,8 +319,6 @@ class RetrievalConfig:
              "one stage (one [[stage]] row) for now"),
             (self.photons == AUTO, f"photons 'auto' is not fitted to the device for the "
              f"{what} yet: give a count (--photons N)"),
-            (bool(self.phase_truncation), f"phase_truncation {self.phase_truncation}: the "
-             "gradient in r_eff is not differentiated through a cut peak; set it to 0"),
             (self.max_change is not None, f"max_change bounds the extinction's step; the {what}"
              " have lwc_step and reff_step"),
         )

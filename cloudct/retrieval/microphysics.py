@@ -34,10 +34,18 @@ e the table's extinction per unit LWC (:mod:`cloudct.physics.microphysics`). A c
 leaves the images to tell the r_eff profile (the r_eff gradient can move it either way)
 and does not presume a cloud base that the carving knows only to a voxel or two.
 
+The paths see the Mie phase functions' forward peak cut at ``phase_truncation`` degrees
+(unset: as the initial medium records, else :data:`~cloudct.retrieval.config.
+OPTICS_TRUNCATION`'s 3 degrees, as the extinction's retrieval of Mie media), with the
+extinction and albedo delta-scaled; the gradients stay in the true LWC and r_eff, the cut's
+own dependence on r_eff included (:mod:`cloudct.mc.microphysics_gradient`). A full peak
+(``phase_truncation = 0``) makes the 0.672 micron gradient heavy-tailed
+(docs/benchmarks.md, "LWC and r_eff from several bands").
+
 This first version keeps the steps and photons fixed (no plateau schedule, no iterate
 average: the result is the last iterate) and runs one stage; path recycling, checkpoints
-and resuming, L-BFGS-B, a non-exponential transmittance, a phase truncation and Dask
-workers are refused by the configuration or here.
+and resuming, L-BFGS-B, a non-exponential transmittance and Dask workers are refused by
+the configuration or here.
 """
 
 from __future__ import annotations
@@ -47,7 +55,7 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import xarray as xr
@@ -66,10 +74,10 @@ from cloudct.measurements import (
     coarse_measurements,
 )
 from cloudct.medium import is_microphysical, is_optical, microphysical_medium, validate_medium
-from cloudct.optics import GRID, band_optics, to_optical
+from cloudct.optics import GRID, PHASE_TRUNCATION, band_optics, to_optical
 from cloudct.physics.microphysics import extinction_lwc_derivative
 from cloudct.physics.mie import DEFAULT_VEFF, mie_table
-from cloudct.retrieval.config import RetrievalConfig
+from cloudct.retrieval.config import OPTICS_TRUNCATION, RetrievalConfig
 from cloudct.retrieval.config_file import config_to_toml
 from cloudct.retrieval.loss import BATCHES, image_loss, loss_std_error, pixel_weights
 from cloudct.retrieval.metrics import (
@@ -251,7 +259,13 @@ class MicrophysicsRetrieval:
                              "microphysical_first_guess turns it into one (cloudct retrieve "
                              "--unknowns lwc reff --init carve does)")
         validate_medium(initial)
-        self.config = config
+        cut = config.phase_truncation
+        if cut is None:
+            cut = float(initial.attrs.get(PHASE_TRUNCATION, 0.0)) or OPTICS_TRUNCATION["mie"]
+            LOGGER.info("phase truncation %g degrees: the paths see the Mie peak cut "
+                        "(phase_truncation = 0 keeps it)", cut)
+        self.config = config = replace(config, phase_truncation=float(cut))
+        initial = initial.assign_attrs({PHASE_TRUNCATION: float(cut)})
         self.backend = resolve_backend(backend)
         veff = float(initial["veff"].max()) if "veff" in initial else DEFAULT_VEFF
         self.tables = ([mie_table(wavelength=float(w), veff=veff) for w in wavelengths]
