@@ -32,6 +32,7 @@ from cloudct.retrieval.loss import image_loss, pixel_weights
 from cloudct.retrieval.metrics import reff_absolute_error, reff_relative_error
 from cloudct.retrieval.microphysics import (
     MicrophysicsRetrieval,
+    brightness_reff,
     loss_and_gradient_over_bands,
     microphysical_first_guess,
 )
@@ -197,8 +198,6 @@ def test_bad_inputs_are_refused_in_one_line(tables, truth, measurements):
         config(photons="auto")
     with pytest.raises(ValueError, match="estimator sm"):
         config(estimator=("sm",))
-    with pytest.raises(ValueError, match="prior l1 is a term in extinction"):
-        config(priors=({"term": "l1", "weight": 0.01},))
     with pytest.raises(ValueError, match="prior reff_smoothness is a term in r_eff"):
         RetrievalConfig(priors=({"term": "reff_smoothness", "weight": 0.01},))
     with pytest.raises(ValueError, match="unknowns must be one of"):
@@ -287,6 +286,32 @@ def test_the_reff_terms_by_hand():
         assert fd == pytest.approx(np.sum(term(reff, grid)[1] * direction), rel=1e-6)
 
 
+def test_the_extinction_terms_act_on_the_reference_extinction_of_lwc(tables, truth,
+                                                                      measurements):
+    """The extinction's terms (l1, Huber smoothness) of the unknowns LWC and r_eff: Phi of
+    e_0 LWC, e_0 the shortest band's extinction per unit LWC at 10 micron; its gradient in
+    LWC against central differences of its value (Huber's rho is quadratic near each
+    point, so the difference's error is rounding alone), none in r_eff."""
+    terms = ({"term": "l1", "weight": 0.01, "schedule": "fixed"},
+             {"term": "smoothness", "weight": 1e-3, "schedule": "fixed",
+              "options": {"huber": 50.0}})
+    run = MicrophysicsRetrieval(measurements, truth, config(priors=terms), mie_tables=tables)
+    e_0 = float(tables[0]["ext_per_lwc"].interp(reff=10.0))
+    assert run.reference_extinction == pytest.approx(e_0, rel=1e-12)
+    run.lwc = run.lwc * np.random.default_rng(2).uniform(0.5, 1.5, run.lwc.shape)
+    value, gradient = run.prior()
+    assert np.all(gradient["reff"] == 0.0)
+    lwc = run.lwc.copy()
+    for voxel in ((2, 2, 1), (1, 3, 2), (4, 1, 3)):
+        sides = []
+        for sign in (1.0, -1.0):
+            run.lwc = lwc.copy()
+            run.lwc[voxel] += sign * 1e-4
+            sides.append(run.prior()[0])
+        fd = (sides[0] - sides[1]) / 2e-4
+        assert fd == pytest.approx(gradient["lwc"][voxel], rel=1e-6, abs=1e-9 * abs(value))
+
+
 def test_the_reff_errors_by_hand():
     truth_lwc = np.array([0.0, 0.2, 0.4, 0.1])
     truth_reff = np.array([5.0, 8.0, 12.0, 16.0])
@@ -299,3 +324,38 @@ def test_the_reff_errors_by_hand():
     assert np.isnan(reff_relative_error(truth_lwc, truth_reff, reff, np.zeros(4, bool)))
     with pytest.raises(ValueError, match="true LWC is zero everywhere"):
         reff_absolute_error(np.zeros(4), truth_reff, reff)
+
+
+def test_the_first_guess_r_eff_renders_the_longest_band_as_bright_as_measured(tables):
+    """A thick cloud of one r_eff (12 micron) seen in both bands, its visible extinction
+    known: the fitted constant is that r_eff within 3 sigma, sigma = the standard error of
+    the log of the measured and of the fit's summed 2.13 micron radiance (independent
+    photons) over |d log B / d log r_eff| (a central difference of the fit's renders at
+    10.5 and 13.5 micron, common random numbers), plus the bisection's resolution."""
+    reff, fit = 12.0, dict(photons=20_000, seed=3)
+    truth = cloud_of(1.0, (reff,) * 3)
+    bands = stack_bands([
+        synthesize_measurements(to_optical(truth, table, optics="mie"), scene(),
+                                photons=100_000, seed=i, method="forward", wavelength=w)
+        for i, (table, w) in enumerate(zip(tables, WAVELENGTHS, strict=True))])
+    visible = to_optical(truth, tables[0], optics="mie")
+    fitted = brightness_reff(visible, bands, tables[0], band_table=tables[1],
+                             phase_truncation=0.0, scan=5, steps=6, **fit)
+
+    def summed(r):
+        images = render(to_optical(microphysical_first_guess(visible, tables[0], r),
+                                   tables[1], optics="mie"), scene(), progress=False, **fit)
+        return (images["radiance"].values.sum(),
+                np.sqrt(np.sum(images["radiance_std_error"].values ** 2)))
+
+    measured = band_measurements(bands, WAVELENGTHS[1])
+    log_errors = [np.sqrt(np.sum(measured["radiance_std_error"].values ** 2))
+                  / measured["radiance"].values.sum()]
+    value, error = summed(reff)
+    log_errors.append(error / value)
+    slope = np.log(summed(13.5)[0] / summed(10.5)[0]) / np.log(13.5 / 10.5)
+    assert slope < -0.1, slope  # the band darkens as r_eff grows: the fit has a signal
+    sigma = np.hypot(*log_errors) / abs(slope)
+    resolution = np.log(20.0 / 4.0) / 4 / 2**6  # the last bracket's half width
+    print(f"fitted {fitted:.3f} micron, sigma {sigma * reff:.3f} micron, slope {slope:.3f}")
+    assert abs(np.log(fitted / reff)) < 3.0 * sigma + resolution

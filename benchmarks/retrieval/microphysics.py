@@ -25,8 +25,9 @@ this benchmark), so the ablation of the bands is ``--bands 0.672 1.65``, ``--ban
 First guess: as ``cloudct retrieve --unknowns lwc reff --init carve``: the 0.672 micron
 band carved (:func:`cloudct.retrieval.carving.carve`, then ``initial_medium``) on the
 grid of the truth with Mie optics (for the single cloud the command's default template),
-its extinction made LWC at r_eff 10 micron
-(:func:`cloudct.retrieval.microphysics.microphysical_first_guess`); the mask is where that
+its extinction made LWC at the constant r_eff with which the longest band renders as
+bright as measured (:func:`cloudct.retrieval.microphysics.brightness_reff` and
+``microphysical_first_guess``); the mask is where that
 LWC is positive (the retrieval's default: the hull less its voxels of zero carved
 extinction). The retrieval then runs with ``--photons`` gradient photons per band and
 iteration (2x as many for each band's images, by ``--image-method``: the retrieval's
@@ -45,7 +46,7 @@ minutes. Usage::
 
     python -m benchmarks retrieval.microphysics --scene single_cloud|two_cumuli
         --bands 0.672 1.65 2.13 [--minutes 15] [--photons 20000] [--lwc-step 0.02]
-        [--reff-step 0.5] [--image-method forward|combined]
+        [--reff-step 0.5] [--prior TERM=WEIGHT[,...] ...] [--image-method forward|combined]
         [--measurement-photons 2000000] [--threads N]
         [--output FILE.json] [--medium-output FILE.nc] [--work DIR]
 
@@ -78,8 +79,10 @@ from cloudct.retrieval.config import RetrievalConfig
 from cloudct.retrieval.microphysics import (
     ERROR_FIELDS,
     MicrophysicsRetrieval,
+    brightness_reff,
     microphysical_first_guess,
 )
+from cloudct.retrieval.priors import parse_prior
 
 #: The bands the benchmark knows [micron], each with its measurement seed.
 BAND_SEEDS = {0.672: 1, 1.65: 2, 2.13: 3}
@@ -147,22 +150,28 @@ def measurements_for(truth: xr.Dataset, scene: str, bands: list[float], photons:
 
 def first_guess(measurements: xr.Dataset, truth: xr.Dataset) -> tuple[xr.Dataset, dict]:
     """``cloudct retrieve --unknowns lwc reff --init carve``'s first guess: the 0.672
-    micron band carved on the truth's grid with Mie optics, its extinction made LWC at
-    r_eff 10 micron; and what the carving found (hull voxels, mean extinction, seconds)."""
+    micron band carved on the truth's grid with Mie optics, its extinction made LWC at the
+    r_eff with which the longest band renders as bright as measured (``brightness_reff``);
+    and what the carving and the fit found (hull voxels, mean extinction, r_eff, seconds)."""
     t0 = time.perf_counter()
     red = band_measurements(measurements, DEFAULT_WAVELENGTH)
     grid = to_optical(truth, optics="mie")
     carved = carve(red, grid)
     initial = initial_medium(carved, grid)
-    guess = microphysical_first_guess(initial, mie_table(wavelength=DEFAULT_WAVELENGTH))
-    return guess, {"seconds": time.perf_counter() - t0,
+    table = mie_table(wavelength=DEFAULT_WAVELENGTH)
+    carving_seconds = time.perf_counter() - t0
+    reff = brightness_reff(initial, measurements, table)
+    guess = microphysical_first_guess(initial, table, reff)
+    return guess, {"seconds": time.perf_counter() - t0, "carving_seconds": carving_seconds,
                    "hull_voxels": int(carved["hull"].values.sum()),
-                   "extinction_estimate": float(carved.attrs["extinction_estimate"])}
+                   "extinction_estimate": float(carved.attrs["extinction_estimate"]),
+                   "first_guess_reff": reff}
 
 
 def run_config(args: argparse.Namespace) -> RetrievalConfig:
     """The retrieval settings of a run with these options (recorded as its ``config``)."""
-    return RetrievalConfig(unknowns=("lwc", "reff"), photons=args.photons,
+    priors = None if args.prior is None else tuple(parse_prior(p) for p in args.prior)
+    return RetrievalConfig(unknowns=("lwc", "reff"), photons=args.photons, priors=priors,
                            lwc_step=args.lwc_step, reff_step=args.reff_step,
                            iterations=args.iterations, time_limit=60.0 * args.minutes,
                            image_method=args.image_method, seed=args.seed,
@@ -203,6 +212,9 @@ def main() -> None:
                         help="Adam's step in LWC [g m-3 per iteration]")
     parser.add_argument("--reff-step", type=float, default=RetrievalConfig.reff_step,
                         help="Adam's step in r_eff [micron per iteration]")
+    parser.add_argument("--prior", nargs="+", default=None,
+                        help="prior terms as cloudct retrieve --prior writes them (default: "
+                        "the retrieval's)")
     parser.add_argument("--image-method", choices=("forward", "combined"),
                         default=RetrievalConfig.image_method,
                         help="the estimator of each band's residual images (combined: no "
@@ -302,7 +314,8 @@ def marks_markdown(result: dict) -> str:
     lines = [f"{result['scene']}, bands {bands} micron: {result['iterations']} iterations "
              f"(first {result['first_iteration_seconds']:.1f} s, then median "
              f"{result['median_iteration_seconds'] or float('nan'):.1f} s each); carved hull "
-             f"{result['carving']['hull_voxels']} voxels, true cloud "
+             f"{result['carving']['hull_voxels']} voxels, first guess r_eff "
+             f"{result['carving']['first_guess_reff']:.2f} micron, true cloud "
              f"{result['true_cloud_voxels']}.", "", *table]
     return "\n".join(lines) + "\n"
 

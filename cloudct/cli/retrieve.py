@@ -48,6 +48,7 @@ from cloudct.physics.mie import DEFAULT_WAVELENGTH, mie_table
 from cloudct.retrieval.carving import carve, initial_medium
 from cloudct.retrieval.config import (
     AUTO,
+    OPTICS_TRUNCATION,
     RetrievalConfig,
     settings_for_optics,
 )
@@ -64,8 +65,16 @@ from cloudct.retrieval.loop import Retrieval
 from cloudct.retrieval.loss import BATCHES
 from cloudct.retrieval.microphysics import (
     MicrophysicsRetrieval,
+    brightness_reff,
     microphysical_first_guess,
     retrieval_bands,
+)
+from cloudct.retrieval.microphysics_report import (
+    RESULT_VARIABLES,
+    is_microphysical_result,
+    result_bands,
+    true_fields,
+    write_microphysics_report,
 )
 from cloudct.retrieval.photon_budget import target_seconds
 from cloudct.retrieval.priors import Prior, prior_text
@@ -267,7 +276,8 @@ def _retrieve_into(args: argparse.Namespace, output: Path, checkpoint: Path) -> 
 def _retrieve_microphysics(args: argparse.Namespace, settings: dict, output: Path) -> int:
     """``cloudct retrieve --unknowns lwc reff``: LWC and r_eff from every band of the file
     (:mod:`cloudct.retrieval.microphysics`). ``--init carve`` carves the band at 0.672
-    micron and turns its extinction into LWC at r_eff 10 micron; ``--init FILE`` reads a
+    micron and turns its extinction into LWC at the r_eff with which the longest band
+    renders as bright as measured (``brightness_reff``); ``--init FILE`` reads a
     microphysical medium. Checkpoints, resuming and Dask workers are refused."""
     what = "--unknowns lwc reff"
     if args.resume or args.checkpoint:
@@ -286,7 +296,13 @@ def _retrieve_microphysics(args: argparse.Namespace, settings: dict, output: Pat
         red = band_measurements(measurements, DEFAULT_WAVELENGTH)
         grid = medium_from_options(args.medium, "mie")
         carved = initial_medium(carve(red, grid, backend=backend), grid)
-        initial = microphysical_first_guess(carved, mie_table(wavelength=DEFAULT_WAVELENGTH))
+        table = mie_table(wavelength=DEFAULT_WAVELENGTH)
+        reff = brightness_reff(carved, measurements, table, phase_truncation=(
+            OPTICS_TRUNCATION["mie"] if config.phase_truncation is None
+            else config.phase_truncation), backend=backend)
+        print(f"first guess: the carved extinction as LWC at r_eff {reff:.3g} micron (the "
+              f"{max(retrieval_bands(measurements)):g} micron images' brightness)")
+        initial = microphysical_first_guess(carved, table, reff)
     else:
         initial = load_medium(args.init)
     run = MicrophysicsRetrieval(measurements, initial, config, truth=truth, backend=backend)
@@ -298,14 +314,43 @@ def _retrieve_microphysics(args: argparse.Namespace, settings: dict, output: Pat
 
 def _cli_report(args: argparse.Namespace) -> int:
     result = load_netcdf(args.result, "result")
+    if is_microphysical_result(result):
+        return _report_microphysics(args, result)
     require_variables(result, ("cloud_extinction", "log_loss", "log_seconds"), "result",
                       args.result)
     truth = load_medium(args.truth) if args.truth else None
+    if truth is not None and "cloud_extinction" not in truth:
+        raise ValueError(f"the result {args.result} is a cloud extinction; the true medium "
+                         f"{args.truth} holds none (lwc and reff): give the optical medium")
     measurements = (retrieval_measurements(args.measurements, "report")
                     if args.measurements else None)
     backend = "cpu" if measurements is None else chosen_backend(args)  # the re-render's
     summary = write_report(result, args.output, truth=truth, measurements=measurements,
                            backend=backend)
+    print(f"wrote {summary}")
+    return 0
+
+
+def _report_microphysics(args: argparse.Namespace, result: xr.Dataset) -> int:
+    """``cloudct report`` of a result of LWC and r_eff (``--unknowns lwc reff``): its
+    truth must be microphysical and its measurements hold the result's bands."""
+    require_variables(result, RESULT_VARIABLES, "result", args.result)
+    truth = measurements = None
+    if args.truth:
+        truth = load_medium(args.truth)
+        try:
+            true_fields(result, truth)
+        except ValueError as err:
+            raise ValueError(f"--truth {args.truth}: {err}") from None
+    if args.measurements:
+        measurements = load_measurements(args.measurements)
+        try:
+            result_bands(result, measurements)
+        except ValueError as err:
+            raise ValueError(f"measurement file {args.measurements}: {err}") from None
+    backend = "cpu" if measurements is None else chosen_backend(args)  # the re-render's
+    summary = write_microphysics_report(result, args.output, truth=truth,
+                                        measurements=measurements, backend=backend)
     print(f"wrote {summary}")
     return 0
 
@@ -405,10 +450,13 @@ def register_cli(subparsers: argparse._SubParsersAction) -> None:
     r.set_defaults(func=_cli_retrieve)
 
     p = subparsers.add_parser("report", help="figures and a summary of a retrieval result")
-    p.add_argument("result", help="result netCDF from cloudct retrieve")
-    p.add_argument("--truth", help="true medium netCDF")
+    p.add_argument("result", help="result netCDF from cloudct retrieve (the extinction, or "
+                   "LWC and r_eff of --unknowns lwc reff)")
+    p.add_argument("--truth", help="true medium netCDF (of LWC and r_eff: a microphysical "
+                   "one)")
     p.add_argument("--measurements", help="measurement netCDF (re-rendered images; of a file "
-                   "with several bands, its 0.672 micron band)")
+                   "with several bands, its 0.672 micron band; of LWC and r_eff: the "
+                   "result's bands, each rendered with its Mie table)")
     p.add_argument("-o", "--output", default="report")
     add_backend_option(p)
     p.set_defaults(func=_cli_report)

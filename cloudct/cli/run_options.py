@@ -14,8 +14,8 @@ from cloudct.optics import DEFAULT_OPTICS
 from cloudct.retrieval.config import (
     AUTO,
     AVERAGING,
+    DEFAULT_MICROPHYSICS_PRIORS,
     DEFAULT_PRIORS,
-    DEFAULT_REFF_PRIORS,
     IMAGE_METHODS,
     LEGACY_SPARSITY,
     OPTIMIZERS,
@@ -178,12 +178,13 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
     p.add_argument("--prior", nargs="+", type=prior_option, metavar="TERM=WEIGHT[,...]",
                    help="the loss's prior terms, replacing the defaults: each "
                         "TERM=WEIGHT[,schedule=fixed|noise][,OPTION=VALUE...] with TERM one "
-                        f"of {', '.join(PRIORS)} (in extinction) or, with --unknowns lwc "
+                        f"of {', '.join(PRIORS)} (in extinction; with --unknowns lwc reff in "
+                        "e_0 LWC) or, with --unknowns lwc "
                         f"reff, {', '.join(REFF_PRIORS)} (in r_eff) (cloudct.retrieval.priors;"
                         " the loss gains WEIGHT x the loss of a dark medium x the term), or "
                         f"none (default {' '.join(prior_text(p) for p in DEFAULT_PRIORS)}; "
                         "none with lbfgsb; with --unknowns lwc reff "
-                        f"{' '.join(prior_text(p) for p in DEFAULT_REFF_PRIORS)})")
+                        f"{' '.join(prior_text(p) for p in DEFAULT_MICROPHYSICS_PRIORS)})")
     p.add_argument("--sparsity", type=float,
                    help="the L1 term alone at this weight [1/km^2] (0: no prior), as the runs "
                         "before the other terms had it; --prior l1=W,... combines terms")

@@ -37,9 +37,10 @@ DEFAULT_PRIORS = (Prior("l1", 0.01, "noise"), Prior("smoothness", 1e-4, "noise")
 #: or the liquid water content and droplet effective radius from several bands
 #: (:mod:`cloudct.retrieval.microphysics`).
 UNKNOWNS = (("extinction",), ("lwc", "reff"))
-#: The loss's prior terms by default for the unknowns LWC and r_eff: r_eff smooth inside
-#: the cloud (:data:`cloudct.retrieval.priors.REFF_PRIORS`).
-DEFAULT_REFF_PRIORS = (Prior("reff_smoothness", 1e-3, "noise"),)
+#: The loss's prior terms by default for the unknowns LWC and r_eff: the extinction's
+#: defaults on the reference extinction e_0 LWC (:mod:`cloudct.retrieval.microphysics`) and
+#: r_eff smooth inside the cloud (:data:`cloudct.retrieval.priors.REFF_PRIORS`).
+DEFAULT_MICROPHYSICS_PRIORS = (*DEFAULT_PRIORS, Prior("reff_smoothness", 1e-3, "noise"))
 #: The L1 term's weight [1/km^2] where a setting of the runs before the other terms
 #: (``sparsity_schedule`` without ``sparsity``) leaves it unset: their default.
 LEGACY_SPARSITY = 0.01
@@ -165,7 +166,7 @@ class RetrievalConfig:
         if self.microphysical:  # the score function of forward photons: uniform pixels
             self.estimator = self.estimator or ("score",) * len(self.stages)
             if self.priors is None:
-                self.priors = DEFAULT_REFF_PRIORS
+                self.priors = DEFAULT_MICROPHYSICS_PRIORS
         quasi_newton = self.optimizer == "lbfgsb"
         for name, kind, first_order, lbfgsb in PER_STAGE_DEFAULTS:  # None: the default
             default = lbfgsb if quasi_newton else first_order
@@ -291,7 +292,7 @@ class RetrievalConfig:
 
     def _check_priors(self) -> None:
         """The prior terms act on the unknowns: extinction terms or r_eff terms."""
-        terms = REFF_PRIORS if self.microphysical else PRIORS
+        terms = {**PRIORS, **REFF_PRIORS} if self.microphysical else PRIORS
         for p in self.priors:
             if p.term not in terms:
                 raise ValueError(

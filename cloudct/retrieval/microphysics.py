@@ -5,20 +5,25 @@ measurements in several bands (issue 53): ``RetrievalConfig(unknowns=("lwc", "re
 Droplets absorb in the shortwave infrared (1.65, 2.13 micron) in proportion to their size,
 and the extinction per unit of water falls as 1 / r_eff, so the images of several bands
 tell LWC and r_eff apart where one band sees only the extinction. The loss is the sum of
-every band's (seed paper Eq. 41) plus prior terms in r_eff::
+every band's (seed paper Eq. 41) plus prior terms in LWC and r_eff::
 
     L(LWC, r_eff) = sum_b 1/2 sum_d w_bd (I_bd - m_bd)^2
-                    + L_empty sum_j w_j m_j Phi_j(r_eff),
-    dL / dLWC_v = sum_b sum_d r_bd dI_bd / dLWC_v,
-    dL / dr_eff_v = sum_b sum_d r_bd dI_bd / dr_eff_v + L_empty sum_j w_j m_j dPhi_j / dr_eff_v,
+                    + L_empty sum_j w_j m_j Phi_j(e_0 LWC) + L_empty sum_k w_k m_k Psi_k(r_eff),
+    dL / dLWC_v = sum_b sum_d r_bd dI_bd / dLWC_v + L_empty sum_j w_j m_j e_0 dPhi_j / d beta_v,
+    dL / dr_eff_v = sum_b sum_d r_bd dI_bd / dr_eff_v + L_empty sum_k w_k m_k dPsi_k / dr_eff_v,
 
 with r_bd = w_bd (I_bd - m_bd) the residual of band b, I_bd rendered through the band's
 Mie table (:func:`cloudct.optics.band_optics`), its derivatives by the path score function
 of forward photons (:func:`cloudct.mc.microphysics_gradient.microphysics_gradient`: the
 extinction's, the albedo's and the phase function's terms), L_empty the loss of a dark
-medium summed over the bands and Phi_j the r_eff terms of
+medium summed over the bands, Phi_j the extinction's terms of
+:data:`cloudct.retrieval.priors.PRIORS` on the reference extinction e_0 LWC (e_0 the
+shortest band's extinction per unit LWC at :data:`FIRST_GUESS_REFF`: a fixed multiple of
+LWC, so that the terms and their weights keep the extinction's units and meaning, and
+exact functions of LWC alone) and Psi_k the r_eff terms of
 :data:`cloudct.retrieval.priors.REFF_PRIORS` (weights and schedules as for the extinction's
-terms). Each iteration takes one projected step on both fields, each with its own
+terms, a ``noise`` schedule following the noise of the gradient in its own field). Each
+iteration takes one projected step on both fields, each with its own
 optimiser (:func:`cloudct.retrieval.optimizers.make_optimizer`): LWC's step
 ``lwc_step`` [g m-3] and r_eff's ``reff_step`` [micron]. With Adam (the default) every
 voxel moves by about its step per iteration whatever the scale of its gradient (Adam
@@ -29,10 +34,15 @@ covers, in the mask, and 0 outside (clear cells: r_eff means nothing there, and 
 terms count only cells with droplets).
 
 The first guess (:func:`microphysical_first_guess`) is the carved extinction turned into
-LWC at a constant r_eff, :data:`FIRST_GUESS_REFF` = 10 micron: LWC = beta / e(10 micron),
-e the table's extinction per unit LWC (:mod:`cloudct.physics.microphysics`). A constant
-leaves the images to tell the r_eff profile (the r_eff gradient can move it either way)
-and does not presume a cloud base that the carving knows only to a voxel or two.
+LWC at a constant r_eff: LWC = beta / e(r_eff), e the table's extinction per unit LWC
+(:mod:`cloudct.physics.microphysics`). The constant is the one with which the first
+guess's images in the longest band are as bright as the measured ones
+(:func:`brightness_reff`: the bispectral idea of Nakajima & King 1990, J. Atmos. Sci. 47,
+1878, for the whole cloud at once: at a fixed extinction in the visible, larger droplets
+hold more water and absorb more in the shortwave infrared); without a fit,
+:data:`FIRST_GUESS_REFF` = 10 micron. A constant leaves the images to tell the r_eff
+profile (the r_eff gradient can move it either way) and does not presume a cloud base that
+the carving knows only to a voxel or two.
 
 The paths see the Mie phase functions' forward peak cut at ``phase_truncation`` degrees
 (unset: as the initial medium records, else :data:`~cloudct.retrieval.config.
@@ -77,6 +87,7 @@ from cloudct.medium import is_microphysical, is_optical, microphysical_medium, v
 from cloudct.optics import GRID, PHASE_TRUNCATION, band_optics, to_optical
 from cloudct.physics.microphysics import extinction_lwc_derivative
 from cloudct.physics.mie import DEFAULT_VEFF, mie_table
+from cloudct.retrieval.carving import FIT_PHOTONS
 from cloudct.retrieval.config import OPTICS_TRUNCATION, RetrievalConfig
 from cloudct.retrieval.config_file import config_to_toml
 from cloudct.retrieval.loss import BATCHES, image_loss, loss_std_error, pixel_weights
@@ -87,7 +98,7 @@ from cloudct.retrieval.metrics import (
     reff_relative_error,
 )
 from cloudct.retrieval.optimizers import block_mean, make_optimizer, smoothed_gradient
-from cloudct.retrieval.priors import PriorGrid
+from cloudct.retrieval.priors import REFF_PRIORS, PriorGrid
 from cloudct.retrieval.schedule import noise_weight
 
 LOGGER = logging.getLogger(__name__)
@@ -214,6 +225,73 @@ def microphysical_first_guess(initial: xr.Dataset, table: xr.Dataset,
     ).assign_attrs(optics="mie")
 
 
+def brightness_reff(
+    initial: xr.Dataset,
+    measurements: xr.Dataset,
+    table: xr.Dataset,
+    *,
+    band_table: xr.Dataset | None = None,
+    photons: int = FIT_PHOTONS,
+    seed: int = 0,
+    phase_truncation: float = OPTICS_TRUNCATION["mie"],
+    scan: int = 9,
+    steps: int = 8,
+    backend: str = "cpu",
+) -> float:
+    """The constant r_eff [micron] with which :func:`microphysical_first_guess` of the
+    optical medium ``initial`` (its extinction in the band of ``table``) renders the
+    longest band of ``measurements`` as bright as measured (module documentation), with
+    that band's Mie table ``band_table`` (default: :func:`~cloudct.physics.mie.mie_table`
+    at the v_eff of ``table``).
+
+    The summed radiance of the band's measured pixels, B*, is matched by that of renders
+    B(r_eff) (forward, ``photons`` photons, the same ``seed`` every time so that B varies
+    smoothly with r_eff; the peak cut at ``phase_truncation`` degrees as the retrieval's
+    paths see it). B rises with r_eff while the droplets are small against the wavelength
+    (the band's extinction grows towards the visible one's) and then falls (more water,
+    more absorption): B is rendered at ``scan`` r_eff spaced evenly in log r over the range
+    both tables cover, and the root of log B(r) = log B* on the falling side of the
+    brightest is found by bisection in log r, ``steps`` renders more (8: to 0.2 % in r).
+    Where B* lies beyond that side's B, its nearer end is returned and a line logged."""
+    longest = float(band_wavelengths(measurements).max())
+    band = band_measurements(measurements, longest)
+    measured = band["radiance"].values
+    observed = np.isfinite(measured)
+    target = float(measured[observed].sum())
+    scene = Scene.from_dataset(band)
+    if band_table is None:
+        band_table = mie_table(wavelength=longest, veff=float(table.attrs["veff"]))
+    low = max(float(table["reff"].values[0]), float(band_table["reff"].values[0]))
+    high = min(float(table["reff"].values[-1]), float(band_table["reff"].values[-1]))
+
+    def log_ratio(log_reff: float) -> float:
+        medium = microphysical_first_guess(initial, table, math.exp(log_reff))
+        optical = to_optical(medium.assign_attrs({PHASE_TRUNCATION: phase_truncation}),
+                             band_table, optics="mie")
+        images = render(optical, scene, photons=photons, seed=seed, progress=False,
+                        backend=backend)
+        return math.log(float(images["radiance"].values[observed].sum()) / target)
+
+    grid = np.linspace(math.log(low), math.log(high), scan)
+    ratios = np.array([log_ratio(x) for x in grid])
+    brightest = int(np.argmax(ratios))
+    darker = np.flatnonzero(ratios[brightest:] <= 0.0)
+    if ratios[brightest] <= 0.0 or darker.size == 0:
+        end = math.exp(grid[brightest] if ratios[brightest] <= 0.0 else grid[-1])
+        LOGGER.info("first guess r_eff %.3g micron: the %g micron images are %s than any "
+                    "r_eff in %g..%g micron renders them", end, longest,
+                    "brighter" if ratios[brightest] <= 0.0 else "darker", low, high)
+        return end
+    lo, hi = grid[brightest + darker[0] - 1], grid[brightest + darker[0]]
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        if log_ratio(mid) > 0.0:
+            lo = mid
+        else:
+            hi = mid
+    return math.exp(0.5 * (lo + hi))
+
+
 def retrieval_bands(measurements: xr.Dataset) -> np.ndarray:
     """The wavelengths [micron] of a measurement set with several bands; a ValueError in
     one line for a set of one band."""
@@ -292,7 +370,11 @@ class MicrophysicsRetrieval:
                            "reff": make_optimizer(config.optimizer, config.reff_step)}
         self._prior_grid = PriorGrid.of(initial)
         self.truth = None if truth is None else self._true_fields(truth)
-        self.iteration, self.elapsed, self.noise_reference = 0, 0.0, 0.0
+        self.iteration, self.elapsed = 0, 0.0
+        self.noise_reference: dict[str, float] = {}
+        # e_0: the extinction per unit LWC of the shortest band at FIRST_GUESS_REFF
+        self.reference_extinction = float(extinction_lwc_derivative(
+            0.0, FIRST_GUESS_REFF, self.tables[int(np.argmin(self.wavelengths))]))
         self.log: dict[str, list[float]] = {key: [] for key in LOG_FIELDS}
         self.band_losses: list[np.ndarray] = []
         LOGGER.info("unknowns lwc reff: steps %g g m-3 and %g micron and %d photons kept "
@@ -323,16 +405,25 @@ class MicrophysicsRetrieval:
         out["reff"] = out["reff"].transpose(*GRID).copy(data=self.reff.copy())
         return out
 
-    def prior(self, multiple: float = 1.0) -> tuple[float, np.ndarray | float]:
-        """The r_eff terms' part of the loss at the current r_eff and its gradient:
-        L_empty sum_j w_j m_j Phi_j(r_eff), m_j = ``multiple`` for a term whose schedule is
-        ``noise`` (as :meth:`cloudct.retrieval.loop.Retrieval.prior`)."""
-        value, gradient = 0.0, 0.0
+    def prior(self, multiples: dict[str, float] | None = None
+              ) -> tuple[float, dict[str, np.ndarray | float]]:
+        """The prior terms' part of the loss at the current iterate and its gradients in
+        ``"lwc"`` and ``"reff"``: L_empty sum_j w_j m_j Phi_j, m_j = ``multiples[field]`` for
+        a term whose schedule is ``noise`` (as :meth:`cloudct.retrieval.loop.Retrieval.
+        prior`), the field the term acts on: r_eff for the terms of :data:`~cloudct.
+        retrieval.priors.REFF_PRIORS`, the extinction's terms on the reference extinction
+        e_0 LWC (module documentation)."""
+        multiples = multiples or {}
+        value, gradient = 0.0, {"lwc": 0.0, "reff": 0.0}
         for p in self.config.priors:
-            phi, d_phi = p.value_and_gradient(self.reff, self._prior_grid)
-            scale = p.weight * self.empty_loss * (multiple if p.schedule == "noise" else 1.0)
+            name = "reff" if p.term in REFF_PRIORS else "lwc"
+            field = self.reff if name == "reff" else self.reference_extinction * self.lwc
+            phi, d_phi = p.value_and_gradient(field, self._prior_grid)
+            scale = p.weight * self.empty_loss * (
+                multiples.get(name, 1.0) if p.schedule == "noise" else 1.0)
             value += scale * phi
-            gradient = gradient + scale * d_phi
+            chain = 1.0 if name == "reff" else self.reference_extinction
+            gradient[name] = gradient[name] + scale * chain * d_phi
         return value, gradient
 
     def errors(self) -> dict[str, float]:
@@ -360,10 +451,13 @@ class MicrophysicsRetrieval:
             gradient_photons=gradient_photons,
             seed=cfg.seed * 1_000_003 + self.iteration * len(self.bands),
             weights=self.weights, method=cfg.image_method, backend=self.backend)
-        multiple, rms = noise_weight(ev.std_error["reff"], self.mask, self.noise_reference)
-        self.noise_reference = self.noise_reference or rms
-        prior, prior_gradient = self.prior(multiple)
-        gradients = {"lwc": ev.gradient["lwc"], "reff": ev.gradient["reff"] + prior_gradient}
+        multiples = {}
+        for name in ("lwc", "reff"):
+            multiples[name], rms = noise_weight(ev.std_error[name], self.mask,
+                                                self.noise_reference.get(name, 0.0))
+            self.noise_reference.setdefault(name, rms)
+        prior, prior_gradient = self.prior(multiples)
+        gradients = {name: ev.gradient[name] + prior_gradient[name] for name in ("lwc", "reff")}
         stepped = {}
         for name, now in (("lwc", self.lwc), ("reff", self.reff)):
             gradient = smoothed_gradient(block_mean(gradients[name], self.mask,

@@ -21,19 +21,33 @@ from cloudct.retrieval.metrics import (
     shell_names,
 )
 from cloudct.retrieval.priors import as_prior, prior_text
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
+from cloudct.retrieval.report_figures import (
+    Curve,
+    Panel,
+    curves_figure,
+    images_figure,
+    pyplot,
+    slices_figure,
+)
 
 #: Photons of the report's re-render of a result, at most.
 RENDER_PHOTONS = 1_000_000
+
+
+def render_photon_count(measurements: xr.Dataset, render_photons: int | None = None) -> int:
+    """The photons of a report's re-render of a result to compare with ``measurements``:
+    ``render_photons`` where given, else :data:`RENDER_PHOTONS` or the measurements' own
+    photons (attribute ``photons``) where they record fewer: a re-render more precise than
+    the images it is compared to adds nothing."""
+    if render_photons is not None:
+        return int(render_photons)
+    return int(min(RENDER_PHOTONS, measurements.attrs.get("photons", RENDER_PHOTONS)))
+
+
+def image_difference(measured: np.ndarray, rendered: np.ndarray) -> float:
+    """The relative L1 difference of re-rendered and measured images, sum |I - m| / sum |m|
+    over the measured pixels (NaN pixels, masked, are left out)."""
+    return float(np.nansum(np.abs(rendered - measured)) / np.nansum(np.abs(measured)))
 
 
 def write_report(
@@ -53,7 +67,7 @@ def write_report(
     as well, epsilon is split by the true cloud's optical distance from its lit and viewed
     boundary in the measurements' scene
     (:func:`~cloudct.retrieval.metrics.epsilon_by_shell`, ``shells.png``)."""
-    plt = _plt()
+    plt = pyplot()
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     lines = ["# cloudct retrieval report", ""]
@@ -66,7 +80,7 @@ def write_report(
         f"{result.attrs.get('stage', '?')}, on {result.attrs.get('device', 'an unrecorded device')}"
         f" (back end {result.attrs.get('backend', '?')})",
         "- settings: [the run's configuration](#configuration) below",
-        f"- priors: {_priors_text(config)}",
+        f"- priors: {priors_text(config)}",
         f"- transmittance: retrieved under {result.attrs.get('transmittance', 'exponential')}"
         f", the measurements made under {result.attrs.get('measurement_transmittance', '?')}"
         " (docs/transmittance.md)",
@@ -84,15 +98,10 @@ def write_report(
     lines.append("")
     beta = result["cloud_extinction"].values
     if "log_loss" in result:
-        seconds = result["log_seconds"].values
-        fig, ax = plt.subplots(figsize=(5, 3.5))
-        ax.semilogy(seconds, result["log_loss"].values, lw=1)
-        ax.set_xlabel("wall time [s]")
-        ax.set_ylabel("loss (Eq. 41)")
-        ax.set_title("loss (stages differ in pixel count)", fontsize=9)
-        fig.tight_layout()
-        save_figure(fig, out / "loss.png", dpi=110)
-        plt.close(fig)
+        curves_figure(result["log_seconds"].values,
+                      [Panel([Curve(None, result["log_loss"].values)], "loss (Eq. 41)",
+                             "loss (stages differ in pixel count)", log=True)],
+                      "wall time [s]", out / "loss.png")
         lines += ["![loss](loss.png)", ""]
     if truth is not None:
         true_beta = truth["cloud_extinction"].values
@@ -112,22 +121,18 @@ def write_report(
                   f"| {split['outside']:.1%} | {split['inside']:.1%} | "
                   f"{split['cloud_mass']:.1%} |", ""]
         if "log_epsilon" in result and np.isfinite(result["log_epsilon"].values).any():
-            fig, ax = plt.subplots(figsize=(5, 3.5))
-            ax.plot(result["log_seconds"].values, result["log_epsilon"].values, label="epsilon")
-            ax.plot(result["log_seconds"].values, result["log_delta"].values, label="delta")
+            curves = [Curve("epsilon", result["log_epsilon"].values),
+                      Curve("delta", result["log_delta"].values)]
             if "log_epsilon_average" in result and np.isfinite(
                 result["log_epsilon_average"].values
             ).any():
-                ax.plot(result["log_seconds"].values, result["log_epsilon_average"].values,
-                        "--", label="epsilon of the iterate average")
-            ax.axhline(0, color="k", lw=0.5)
-            ax.set_xlabel("wall time [s]")
-            ax.legend()
-            fig.tight_layout()
-            save_figure(fig, out / "epsilon_delta.png", dpi=110)
-            plt.close(fig)
+                curves.append(Curve("epsilon of the iterate average",
+                                    result["log_epsilon_average"].values, "--"))
+            curves_figure(result["log_seconds"].values, [Panel(curves, zero=True)],
+                          "wall time [s]", out / "epsilon_delta.png")
             lines += ["![epsilon and delta](epsilon_delta.png)", ""]
-        _slices(plt, true_beta, beta, result["z"].values, out / "slices.png")
+        slices_figure([("true", true_beta), ("retrieved", beta)], result["z"].values,
+                      "cloud extinction [1/km]", out / "slices.png")
         fig, ax = plt.subplots(figsize=(4.2, 4))
         cloudy = (true_beta > 0) | (beta > 0)
         ax.scatter(true_beta[cloudy], beta[cloudy], s=3, alpha=0.4)
@@ -145,19 +150,17 @@ def write_report(
         from cloudct.mc.render import render
         from cloudct.mc.scene import Scene
 
-        if render_photons is None:
-            recorded = measurements.attrs.get("photons", RENDER_PHOTONS)
-            render_photons = int(min(RENDER_PHOTONS, recorded))
+        render_photons = render_photon_count(measurements, render_photons)
         images = render(result, Scene.from_dataset(measurements), photons=render_photons,
                         progress=False, backend=backend)
         rendered = images["radiance"].values
         measured = measurements["radiance"].values  # NaN pixels (masked) are left out
-        _images(plt, measured, rendered, out / "images.png")
-        rel = np.nansum(np.abs(rendered - measured)) / np.nansum(np.abs(measured))
+        images_figure([("measured", measured), ("retrieved", rendered)], out / "images.png")
         lines += ["## Re-rendered vs measured images", "",
-                  f"Relative L1 image difference: {rel:.1%} (re-rendered with {render_photons} "
-                  f"photons on the {images.attrs['backend']} back end; their Monte Carlo noise "
-                  "is part of it).", "",
+                  f"Relative L1 image difference: {image_difference(measured, rendered):.1%} "
+                  f"(re-rendered with {render_photons} photons on the "
+                  f"{images.attrs['backend']} back end; their Monte Carlo noise is part of "
+                  "it).", "",
                   "![images](images.png)", ""]
     decisions = json.loads(result.attrs.get("decisions", "[]"))
     if decisions:
@@ -167,10 +170,7 @@ def write_report(
     if "log_step" in result and np.isfinite(result["log_step"].values).any():
         _schedule_figure(plt, result, decisions, out / "schedule.png")
         lines += ["![step and photons against time](schedule.png)", ""]
-    lines += ["## Configuration", "",
-              "The run's settings (`cloudct retrieve --config` of this text, or of the result "
-              "file, re-runs it; docs/retrieval_config.md):", "",
-              "```toml", stored_config(result).rstrip("\n"), "```", ""]
+    lines += configuration_lines(result)
     summary = out / "summary.md"
     summary.write_text("\n".join(lines))
     return summary
@@ -249,12 +249,21 @@ def _compiling_text(result: xr.Dataset) -> str:
                    if ahead > 0 else "")
 
 
-def _priors_text(config: dict) -> str:
-    """The run's prior terms as ``--prior`` writes them (cloudct.retrieval.priors; a run
-    from before the terms: its L1 weight)."""
+def priors_text(config: dict) -> str:
+    """A result's prior terms (``config``: its attribute ``config`` read as JSON) as
+    ``--prior`` writes them (cloudct.retrieval.priors; a run from before the terms: its L1
+    weight)."""
     if "priors" not in config:
         return f"l1={config.get('sparsity', 0.0):g} (the L1 prior alone)"
     return " ".join(prior_text(as_prior(p)) for p in config["priors"]) or "none"
+
+
+def configuration_lines(result: xr.Dataset) -> list[str]:
+    """The summary's closing section: the run's settings as TOML (:func:`stored_config`)."""
+    return ["## Configuration", "",
+            "The run's settings (`cloudct retrieve --config` of this text, or of the result "
+            "file, re-runs it; docs/retrieval_config.md):", "",
+            "```toml", stored_config(result).rstrip("\n"), "```", ""]
 
 
 def stored_config(result: xr.Dataset) -> str:
@@ -285,36 +294,3 @@ def _schedule_figure(plt, result: xr.Dataset, decisions: list[dict], path: Path)
     save_figure(fig, path, dpi=110)
     plt.close(fig)
 
-
-def _slices(plt, truth: np.ndarray, beta: np.ndarray, z: np.ndarray, path: Path) -> None:
-    """Horizontal slices of the true and retrieved extinction at four heights from the true
-    cloud's base to its top, on one colour scale."""
-    cloudy = np.nonzero((truth > 0).any(axis=(0, 1)))[0]
-    low, high = (cloudy[0], cloudy[-1]) if cloudy.size else (0, truth.shape[2] - 1)
-    ks = np.unique(np.linspace(low, high, 4).round().astype(int))
-    top = max(truth.max(), beta.max())
-    fig, axes = plt.subplots(2, len(ks), figsize=(2.6 * len(ks) + 1.0, 5.2), squeeze=False,
-                             layout="constrained")
-    for col, k in enumerate(ks):
-        for row, (data, name) in enumerate(((truth, "true"), (beta, "retrieved"))):
-            ax = axes[row, col]
-            im = ax.imshow(data[:, :, k].T, origin="lower", vmin=0, vmax=top, cmap="viridis")
-            ax.set_title(f"{name}, z = {z[k]:.2f} km", fontsize=8)
-            ax.axis("off")
-    fig.colorbar(im, ax=axes, shrink=0.8, label="cloud extinction [1/km]")
-    save_figure(fig, path, dpi=110)
-    plt.close(fig)
-
-
-def _images(plt, measured: np.ndarray, rendered: np.ndarray, path: Path) -> None:
-    nv = measured.shape[0]
-    vmax = np.nanmax(measured)  # one grey scale, the measurements'; brighter noise saturates
-    fig, axes = plt.subplots(2, nv, figsize=(1.9 * nv, 4.0), squeeze=False)
-    for v in range(nv):
-        for row, (data, name) in enumerate(((measured, "measured"), (rendered, "retrieved"))):
-            axes[row, v].imshow(data[v], cmap="gray", vmin=0, vmax=vmax)
-            axes[row, v].set_title(f"{name} {v}", fontsize=7)
-            axes[row, v].axis("off")
-    fig.tight_layout()
-    save_figure(fig, path, dpi=110)
-    plt.close(fig)
