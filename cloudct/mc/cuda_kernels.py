@@ -52,6 +52,12 @@ SORT_PATHS = True
 MAX_LAUNCH = 1 << 22
 #: Device memory per forward-gradient photon and launch: path sum, vertices, order.
 BYTES_PER_GRADIENT_PHOTON = 24
+#: The modes the kernels pass, as int64 values: numba types an int constant as a literal and
+#: compiles a routine once per literal it is given, so each forward kernel would compile its
+#: own ``trace_photon``; NVVM, which inlines it into the kernel, folds the value all the same.
+RENDER_MODE = np.int64(RENDER)
+RESIDUAL_MODE = np.int64(RESIDUAL)
+GRADIENT_MODE = np.int64(GRADIENT)
 
 
 class DeviceScene(NamedTuple):
@@ -90,7 +96,8 @@ def forward_render_kernel(
     b, index = thread_photon(t, per_batch, first, count)
     vertices, _ = trace_photon(
         scene.grid, scene.bank, scene.cams, scene.copies, scene.sun, periodic, ground,
-        rr_depth, rr_survival, seed, index, RENDER, images[b], no_residual, no_gradient, 0.0,
+        rr_depth, rr_survival, seed, index, RENDER_MODE, images[b], no_residual, no_gradient,
+        0.0,
     )
     cuda.atomic.add(events, b, vertices)
 
@@ -109,7 +116,7 @@ def forward_sensor_kernel(
     b, index = thread_photon(t, per_batch, first, count)
     vertices, _ = trace_photon(
         scene.grid, scene.bank, scene.cams, scene.copies, scene.sun, periodic, ground,
-        rr_depth, rr_survival, seed, index, RENDER, images[b], unused, unused, 0.0, None, 0,
+        rr_depth, rr_survival, seed, index, RENDER_MODE, images[b], unused, unused, 0.0, None, 0,
         None, fluxes[b],
     )
     cuda.atomic.add(events, b, vertices)
@@ -129,7 +136,7 @@ def forward_residual_kernel(
     b, index = thread_photon(t, per_batch, first, count)
     n, s = trace_photon(
         scene.grid, scene.bank, scene.cams, scene.copies, scene.sun, periodic, ground,
-        rr_depth, rr_survival, seed, index, RESIDUAL, no_image, residual, no_gradient, 0.0,
+        rr_depth, rr_survival, seed, index, RESIDUAL_MODE, no_image, residual, no_gradient, 0.0,
     )
     path_sum[t] = s
     vertices[t] = n

@@ -372,10 +372,12 @@ def trace_photon(
                 sun_turn = ground_albedo * -sun.direction[2] * INV_PI
             s_event = 0.0
             if mode < COUNT:
+                # sun_aim and sun_lobe at their defaults (no aimed draw at the ground), passed
+                # so that this call shares the scattering event's compiled local_estimate
                 s_event = local_estimate(
                     grid, bank, cams, copies, periodic, px, py, pz, ix, iy, iz, ux, uy, uz,
                     weight, ground_albedo, mode, image, residual, gradient, trail,
-                    sun_end * back_aims / aim_product, sun_turn,
+                    sun_end * back_aims / aim_product, sun_turn, 0.0, -1.0,
                 )
             weight *= ground_albedo
             ux, uy, uz, state = lambertian_bounce(state)

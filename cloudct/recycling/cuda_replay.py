@@ -38,8 +38,14 @@ import numpy as np
 from numba import cuda, njit
 
 import cloudct.mc.cuda_kernels as ck
-from cloudct.mc.cuda_kernels import device_scene, device_zeros, to_device, to_host
-from cloudct.mc.forward import GRADIENT, RENDER
+from cloudct.mc.cuda_kernels import (
+    GRADIENT_MODE,
+    RENDER_MODE,
+    device_scene,
+    device_zeros,
+    to_device,
+    to_host,
+)
 from cloudct.recycling.path_terms import path_log_ratio
 from cloudct.recycling.replay_kernels import replay_path
 
@@ -73,8 +79,8 @@ def replay_render_kernel(
     b, j, p = replay_thread_path(t, order, S, per_batch, first, count)
     depth, _, log_r = replay_path(
         scene.grid, scene.bank, scene.cams, scene.copies, scene.sun, periodic, ground,
-        rr_depth, rr_survival, beta, S, p, use_crossings, RENDER, images[b], no_residual,
-        no_residual, None, scratch[S.path_start[p]:],
+        rr_depth, rr_survival, beta, S, p, use_crossings, RENDER_MODE, images[b],
+        no_residual, no_residual, None, scratch[S.path_start[p]:],
     )
     log_ratio[j] = log_r
     cuda.atomic.add(events, b, depth)
@@ -94,8 +100,8 @@ def replay_gradient_kernel(
     b, j, p = replay_thread_path(t, order, S, per_batch, first, count)
     depth, _, log_r = replay_path(
         scene.grid, scene.bank, scene.cams, scene.copies, scene.sun, periodic, ground,
-        rr_depth, rr_survival, beta, S, p, use_crossings, GRADIENT, no_image, residual,
-        gradients[b], None, scratch[S.path_start[p]:],
+        rr_depth, rr_survival, beta, S, p, use_crossings, GRADIENT_MODE, no_image,
+        residual, gradients[b], None, scratch[S.path_start[p]:],
     )
     log_ratio[j] = log_r
     cuda.atomic.add(events, b, depth)
