@@ -20,6 +20,7 @@ renders): dense cloud (1, 1, 2), (1, 3, 2); thin cloud (1, 1, 3); cloud-free air
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -29,7 +30,8 @@ from scipy.integrate import quad
 from test_transmittance_gradient import mode_field
 
 from cloudct.mc.cameras import Camera
-from cloudct.mc.drt import sample_transmittance
+from cloudct.mc.drt import drt_pixel_sample, sample_transmittance
+from cloudct.mc.estimate import kernel_inputs
 from cloudct.mc.gradient import drt_gradient
 from cloudct.mc.random import stream_start
 from cloudct.mc.render import render_batches
@@ -357,3 +359,36 @@ def test_drt_gradient_is_linear_in_the_residual_and_checks_its_shape():
         drt_gradient(medium, scene, r[:1], samples_per_pixel=8, batches=2)
     with pytest.raises(ValueError, match="residual"):
         drt_gradient(medium, scene, np.full_like(r, np.nan), samples_per_pixel=8, batches=2)
+
+
+# ----------------------------------------------------------------------------------------
+# Speed
+# ----------------------------------------------------------------------------------------
+
+
+def test_a_drt_sample_updates_no_reference_counts():
+    """DRT's routines, and the walk, camera and physics routines they call, are compiled
+    without numba's reference counting (``_nrt=False``, docs/architecture.md). With it, every
+    call increments and decrements the count of each array the routine receives, about 30
+    atomic updates each way for a routine that takes the grid, the phase bank, the cameras
+    and the sun: a third of DRT's time on the CPU. The LLVM IR of a pixel sample, with every
+    routine it calls linked in, updates no count."""
+    k = kernel_inputs(drt_medium(), drt_scene(), aim_fraction=0.0)
+
+    @njit(_nrt=False)
+    def one_sample(grid, bank, cams, sun, periodic, ground_albedo, gradient):
+        return drt_pixel_sample(grid, bank, cams, sun, periodic, ground_albedo, 100, 0.95, 1,
+                                0, 1, 1, 1, 1.0, gradient, 1.0)
+
+    gradient = np.zeros(k.grid.extinction.shape[1:])
+    one_sample(k.grid, k.bank, k.cams, k.sun, k.periodic, k.ground, gradient)
+    ir = one_sample.inspect_llvm(one_sample.signatures[0])
+    functions = {m.group(1): m.group(0) for m in re.finditer(
+        r'^define [^\n]*?@"?([^\s("]+)"?\(.*?^\}', ir, re.M | re.S)}
+    routines = [name for name in functions if name.startswith("_ZN7cloudct")]
+    for routine in ("drt_pixel_sample", "trace_path", "sample_transmittance", "march",
+                    "camera_ray_entry"):
+        assert any(routine in name for name in routines), f"{routine} not linked in"
+    counting = [name for name in routines
+                if "@NRT_incref(" in functions[name] or "@NRT_decref(" in functions[name]]
+    assert not counting, f"reference counts updated in {counting}"

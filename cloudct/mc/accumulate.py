@@ -14,11 +14,16 @@ implementation per target (``numba.extending.overload``):
 The ``@njit`` routines of the engine call ``add_to``; numba-cuda compiles those routines for
 the GPU when a CUDA kernel calls them, and resolves ``add_to`` to the CUDA implementation
 there.
+
+:func:`inline_on_cpu` is the other difference: an ``inline=`` choice for ``@njit`` routines
+that are inlined into the CPU kernels but stay calls on the GPU, whose code they leave as it
+was.
 """
 
 from __future__ import annotations
 
 from numba import njit
+from numba.core.target_extension import current_target
 from numba.extending import overload
 
 
@@ -30,6 +35,13 @@ def add_to(array, i, j, k, value):
     with respect to other Python threads.
     """
     _add_to_cpu(array, i, j, k, value)
+
+
+def inline_on_cpu(expr, caller_ir, callee_ir) -> bool:
+    """``@njit(inline=inline_on_cpu)``: numba's cost model for inlining at its IR level, asked
+    at every call site. Inline where a CPU kernel is compiled; where numba-cuda compiles a
+    CUDA kernel (under the target ``"cuda"``) the routine stays a device function call."""
+    return current_target() == "cpu"
 
 
 def _add(array, i, j, k, value):

@@ -58,7 +58,7 @@ from cloudct.physics.mixing import (
 INV_PI = 1.0 / math.pi
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def camera_ray_entry(grid, cams, periodic, view, row, col, state):
     """Start of a backward path: the ray from the pinhole through a uniform point of pixel
     (view, row, col) (orthographic: from that point along the view direction), taken to

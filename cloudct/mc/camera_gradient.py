@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from numba import njit, prange
 
+from cloudct.mc.accumulate import inline_on_cpu
 from cloudct.mc.backward import score_pixel_sample
 from cloudct.mc.drt import drt_pixel_sample
 from cloudct.mc.pixel_sampling import draw_pixel
@@ -30,7 +31,7 @@ SCORE = 2  # the path score function of backward paths (cloudct.mc.backward)
 TITLES = {DRT: "DRT", SAMPLE_MATCHING: "sample matching", SCORE: "backward score function"}
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False, inline=inline_on_cpu)
 def gradient_sample(
     estimator, grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
     index, view, row, col, weight, gradient, probes, quadratic, mis,
@@ -55,14 +56,14 @@ def gradient_sample(
     )
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def drawn_pixel(table, seed, index, nrows, ncols):
     """``(view, row, col, weight)`` of table-drawn sample ``index``."""
     pixel, weight, _ = draw_pixel(table, stream_start(seed, DOMAIN_PIXEL_TABLE, index))
     return pixel // (nrows * ncols), (pixel // ncols) % nrows, pixel % ncols, weight
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, _nrt=False)
 def camera_gradient_batches(
     grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
     per_batch, first, last, estimator, probes, quadratic, mis, residual, table,

@@ -213,7 +213,7 @@ def project(cams, view, px, py, pz):
     return row, col, -dx / r, -dy / r, -dz / r, inverse_r2_omega
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def inverse_r2_omega(cams, view, ux, uy, uz, r):
     """1 / (r^2 Omega_pixel) of :func:`project` for the point at distance ``r`` from the
     pinhole along the unit vector (ux, uy, uz) (orthographic: 1 / pixel area, whatever
@@ -224,7 +224,7 @@ def inverse_r2_omega(cams, view, ux, uy, uz, r):
     return 1.0 / (cams.pixel_area[view] * r * r * cos_alpha * cos_alpha * cos_alpha)
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def pixel_ray(cams, view, row, col, xi_u, xi_v):
     """Origin and unit direction ``(ox, oy, oz, dx, dy, dz)`` of the ray through the
     image-plane point of a pixel: from the pinhole, or (orthographic) from the point on the

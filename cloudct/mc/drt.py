@@ -144,7 +144,7 @@ import math
 
 from numba import njit
 
-from cloudct.mc.accumulate import add_to
+from cloudct.mc.accumulate import add_to, inline_on_cpu
 from cloudct.mc.backward import camera_ray_entry
 from cloudct.mc.events import lambertian_bounce, russian_roulette, scatter
 from cloudct.mc.random import DOMAIN_DRT, stream_start, uniform
@@ -187,7 +187,7 @@ def power_law_piece(kappa, mode, length):
     return mean, y
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def sample_transmittance(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic, state):
     """A point on the ray from (px, py, pz) along (ux, uy, uz), drawn with density T(t) / C.
 
@@ -285,7 +285,7 @@ def sample_transmittance(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic, sta
     return total, hazard, rx + s * ux, ry + s * uy, rz + s * uz, rix, riy, riz, state
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def free_flight_mis_weight(grid, ix, iy, iz, length):
     """w_DT of the module docstring: (beta ell)^2 / ((beta ell)^2 + 1), 0 where beta_s = 0."""
     if scattering_coefficient(grid, ix, iy, iz) <= 0.0:
@@ -295,7 +295,7 @@ def free_flight_mis_weight(grid, ix, iy, iz, length):
     return x / (x + 1.0)
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def scattering_kernel(grid, bank, ix, iy, iz, mu):
     """sum_j alpha_j beta_j f_j(mu) = beta_s f_mix(mu) [1/(km sr)]."""
     value = 0.0
@@ -306,7 +306,7 @@ def scattering_kernel(grid, bank, ix, iy, iz, mu):
     return value
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def trace_path(
     grid, bank, sun, periodic, ground_albedo, rr_depth, rr_survival, px, py, pz, ix, iy, iz,
     ux, uy, uz, state, replay, total, residual, gradient, side, mis_length,
@@ -417,7 +417,7 @@ def trace_path(
     )
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def cloud_sun_term(grid, bank, sun, periodic, px, py, pz, ix, iy, iz, ux, uy, uz):
     """f_c(s.u) T_sun(x): the sunlight a unit of cloud scattering coefficient at x (voxel
     (ix, iy, iz)) sends back along -u, per unit albedo (the sun part of K in the module
@@ -428,7 +428,7 @@ def cloud_sun_term(grid, bank, sun, periodic, px, py, pz, ix, iy, iz, ux, uy, uz
             * math.exp(-tau_sun))
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def cloud_diffuse_term(
     grid, bank, sun, periodic, ground_albedo, rr_depth, rr_survival, px, py, pz, ix, iy, iz,
     ux, uy, uz, state, gradient, mis_length,
@@ -452,7 +452,7 @@ def cloud_diffuse_term(
     return radiance, vertices, state
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False, inline=inline_on_cpu)
 def primal_pass(
     grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, domain, index,
     view, row, col, gradient, mis_length,
@@ -479,7 +479,7 @@ def primal_pass(
     return hit, total, vertices, state, side, px, py, pz, ix, iy, iz, ux, uy, uz
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def drt_pixel_sample(
     grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, index, view,
     row, col, residual, gradient, mis_length,

@@ -23,7 +23,7 @@ from cloudct.physics.phase import scatter_direction
 TWO_PI = 2.0 * math.pi
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def scatter(grid, bank, ix, iy, iz, ux, uy, uz, state):
     """New direction after a scattering event in voxel (ix, iy, iz)."""
     u, state = uniform(state)

@@ -111,7 +111,7 @@ from cloudct.mc.traversal import BOTTOM, INF, LEFT, march, optical_depth_to_exit
 from cloudct.physics.mixing import cell_phase_function, effective_albedo, mixture_phase_function
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def match_segments(
     grid, bank, sun, periodic, ground_albedo, rr_depth, rr_survival, px, py, pz, ix, iy, iz,
     ux, uy, uz, state, side, total, residual, gradient, probes, quadratic, mis, mis_length,
@@ -242,7 +242,7 @@ def match_segments(
     return traced, side, res_w, found, cx, cy, cz, cix, ciy, ciz, cux, cuy, cuz
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def sample_matching_pixel_sample(
     grid, bank, cams, sun, periodic, ground_albedo, rr_depth, rr_survival, seed, index, view,
     row, col, residual, gradient, probes, quadratic, mis, mis_length,

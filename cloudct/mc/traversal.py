@@ -65,7 +65,7 @@ def new_trail(capacity: int, voxel_dtype=np.int64) -> Trail:
     )
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def locate(edges, p, d):
     """Index of the cell of ``edges`` holding coordinate ``p``, ties broken by direction ``d``.
 
@@ -130,7 +130,7 @@ def step_index(i, p, edges, d):
     return i - 1, edges[i]
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def cross_boundary(grid, px, py, pz, ix, iy, iz, periodic):
     """After a step out of the cell range (:func:`step_index`): re-enter through the
     opposite side face with periodic boundaries, or end the walk.
@@ -165,7 +165,7 @@ def cross_boundary(grid, px, py, pz, ix, iy, iz, periodic):
     return INSIDE, px, py, pz, ix, iy, iz
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def march(
     grid, px, py, pz, ux, uy, uz, ix, iy, iz, tau_target, periodic, lengths=None,
     length_weight=0.0, max_distance=INF, trail=None,
@@ -315,13 +315,13 @@ def require_smooth_flight_density(grid, what: str) -> None:
         )
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def optical_depth_to_exit(grid, px, py, pz, ux, uy, uz, ix, iy, iz, periodic):
     """Optical depth from a point inside the medium along a direction until it leaves."""
     return march(grid, px, py, pz, ux, uy, uz, ix, iy, iz, INF, periodic)[7]
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def locate_point(grid, px, py, pz, ux, uy, uz):
     """Voxel of a point inside (or on the surface of) the box, for a ray along (ux, uy, uz)."""
     return (
@@ -331,7 +331,7 @@ def locate_point(grid, px, py, pz, ux, uy, uz):
     )
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def wrap_into_box(grid, px, py):
     """Horizontal position folded into the box, for periodic boundaries."""
     x0 = grid.x_edges[0]
@@ -343,7 +343,7 @@ def wrap_into_box(grid, px, py):
     return px, py
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def ray_box_entry(grid, ox, oy, oz, ux, uy, uz, periodic):
     """Distance along a ray from outside the medium to where it enters it, or -1 if never.
 

@@ -47,7 +47,7 @@ class OpticalGrid(NamedTuple):
     transmittance_mode: np.ndarray
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def cell_phase_function(
     grid: OpticalGrid, bank: PhaseBank, j: int, ix: int, iy: int, iz: int, mu: float
 ) -> float:
@@ -60,7 +60,7 @@ def cell_phase_function(
     return (1.0 - t) * phase_function(bank, k, mu) + t * phase_function(bank, k + 1, mu)
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def sample_cell_phase_cosine(
     grid: OpticalGrid, bank: PhaseBank, j: int, ix: int, iy: int, iz: int, u: float
 ) -> float:
@@ -117,7 +117,7 @@ def mixture_phase_function(
     return num / beta_s
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def choose_particle_type(grid: OpticalGrid, ix: int, iy: int, iz: int, u: float) -> int:
     """Particle type that scatters, with probability beta_s^(j) / beta_s, for u in [0, 1).
 

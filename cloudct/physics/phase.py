@@ -139,7 +139,7 @@ def sample_henyey_greenstein_cosine(g: float, u: float) -> float:
     return max(1.0 - one_minus_mu, -1.0)
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def sample_tabulated_cosine(bank: PhaseBank, ip: int, u: float) -> float:
     """Scattering cosine with a tabulated (piecewise linear in mu) density, exactly.
 
@@ -162,7 +162,7 @@ def sample_tabulated_cosine(bank: PhaseBank, ip: int, u: float) -> float:
     return min(m0 + min(t, h), 1.0)
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def sample_phase_cosine(bank: PhaseBank, ip: int, u: float) -> float:
     """Scattering cosine drawn from phase function ``ip`` of the bank, u uniform in [0, 1)."""
     kind = bank.kind[ip]
