@@ -23,6 +23,7 @@ from test_microphysics_retrieval import (
     WAVELENGTHS,
     cloud_of,
     config,
+    measured,
     scene,
 )
 
@@ -30,8 +31,7 @@ from cloudct.cli import main
 from cloudct.mc.render import render
 from cloudct.mc.scene import Scene
 from cloudct.mc.visibility import boundary_optical_distance
-from cloudct.measurement_bands import stack_bands
-from cloudct.measurements import band_measurements, save_measurements, synthesize_measurements
+from cloudct.measurements import band_measurements, save_measurements
 from cloudct.medium import save_medium
 from cloudct.netcdf import save_netcdf
 from cloudct.optics import to_optical
@@ -58,10 +58,7 @@ def truth():
 
 @pytest.fixture(scope="module")
 def measurements(tables, truth):
-    return stack_bands([
-        synthesize_measurements(to_optical(truth, table, optics="mie"), scene(),
-                                photons=20_000, seed=i, method="forward", wavelength=w)
-        for i, (table, w) in enumerate(zip(tables, WAVELENGTHS, strict=True))])
+    return measured(truth, tables, 20_000)
 
 
 def retrieved_medium() -> xr.Dataset:

@@ -76,13 +76,18 @@ def truth():
     return cloud_of(0.2, TRUE_REFF)
 
 
+def measured(cloud: xr.Dataset, tables, photons: int) -> xr.Dataset:
+    """``cloud``'s images in both bands, ``photons`` forward photons each (band i: seed i)."""
+    return stack_bands([
+        synthesize_measurements(to_optical(cloud, table, optics="mie"), scene(),
+                                photons=photons, seed=i, method="forward", wavelength=w)
+        for i, (table, w) in enumerate(zip(tables, WAVELENGTHS, strict=True))])
+
+
 @pytest.fixture(scope="module")
 def measurements(tables, truth):
     """The true cloud's images in both bands, 200 000 forward photons each."""
-    return stack_bands([
-        synthesize_measurements(to_optical(truth, table, optics="mie"), scene(),
-                                photons=200_000, seed=i, method="forward", wavelength=w)
-        for i, (table, w) in enumerate(zip(tables, WAVELENGTHS, strict=True))])
+    return measured(truth, tables, 200_000)
 
 
 def config(**settings) -> RetrievalConfig:
@@ -334,10 +339,7 @@ def test_the_first_guess_r_eff_renders_the_longest_band_as_bright_as_measured(ta
     10.5 and 13.5 micron, common random numbers), plus the bisection's resolution."""
     reff, fit = 12.0, dict(photons=20_000, seed=3)
     truth = cloud_of(1.0, (reff,) * 3)
-    bands = stack_bands([
-        synthesize_measurements(to_optical(truth, table, optics="mie"), scene(),
-                                photons=100_000, seed=i, method="forward", wavelength=w)
-        for i, (table, w) in enumerate(zip(tables, WAVELENGTHS, strict=True))])
+    bands = measured(truth, tables, 100_000)
     visible = to_optical(truth, tables[0], optics="mie")
     fitted = brightness_reff(visible, bands, tables[0], band_table=tables[1],
                              phase_truncation=0.0, scan=5, steps=6, **fit)
@@ -348,9 +350,9 @@ def test_the_first_guess_r_eff_renders_the_longest_band_as_bright_as_measured(ta
         return (images["radiance"].values.sum(),
                 np.sqrt(np.sum(images["radiance_std_error"].values ** 2)))
 
-    measured = band_measurements(bands, WAVELENGTHS[1])
-    log_errors = [np.sqrt(np.sum(measured["radiance_std_error"].values ** 2))
-                  / measured["radiance"].values.sum()]
+    longest = band_measurements(bands, WAVELENGTHS[1])
+    log_errors = [np.sqrt(np.sum(longest["radiance_std_error"].values ** 2))
+                  / longest["radiance"].values.sum()]
     value, error = summed(reff)
     log_errors.append(error / value)
     slope = np.log(summed(13.5)[0] / summed(10.5)[0]) / np.log(13.5 / 10.5)
