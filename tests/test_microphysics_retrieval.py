@@ -31,6 +31,7 @@ from cloudct.retrieval.loop import Retrieval
 from cloudct.retrieval.loss import image_loss, pixel_weights
 from cloudct.retrieval.metrics import reff_absolute_error, reff_relative_error
 from cloudct.retrieval.microphysics import (
+    BandsLossGradient,
     MicrophysicsRetrieval,
     brightness_reff,
     loss_and_gradient_over_bands,
@@ -165,8 +166,56 @@ def test_the_result_holds_lwc_reff_and_the_log(retrieval):
     for name in ("lwc_epsilon", "lwc_delta", "reff_relative_error",
                  "reff_absolute_error_near", "reff_relative_error_near"):
         assert np.all(np.isfinite(result[f"log_{name}"].values)), name
+    for name in ("lwc", "reff"):  # the default: an exponential moving average
+        average = result[f"{name}_average"].values
+        assert np.all(average[~run.mask] == 0.0) and np.all(average[run.mask] > 0.0)
     assert result.attrs["unknowns"] == "lwc reff"
     assert RetrievalConfig(**json.loads(result.attrs["config"])) == run.config
+
+
+def test_the_schedule_grows_the_photons_then_decays_both_steps(monkeypatch, tables,
+                                                               measurements):
+    """A loss flat at its noise (1 +- 0.01) and a constant gradient (-1 in LWC, +1 in
+    r_eff): after each window of 5 iterations the noise schedule finds a plateau; the
+    photons of both evaluations double to their cap (4x), then both fields' steps halve to
+    their floor (0.25), then the run says it is at its floor. Adam moves each voxel by its
+    step when the gradient is constant, so the fields move by exactly the logged steps,
+    and the uniform iterate average restarts at each change of step."""
+    traced = []
+
+    def flat(medium, bands, tables, *, photons, gradient_photons, **_):
+        traced.append((photons, gradient_photons))
+        ones = np.ones(medium["lwc"].shape)
+        return BandsLossGradient(1.0, np.array([0.5, 0.5]), 0.01,
+                                 {"lwc": -ones, "reff": ones},
+                                 {"lwc": 0.0 * ones, "reff": 0.0 * ones},
+                                 {"wall_time": 0.0, "photons": 0})
+
+    monkeypatch.setattr("cloudct.retrieval.microphysics.loss_and_gradient_over_bands", flat)
+    start = cloud_of(0.2, (12.0, 12.0, 12.0))
+    run = MicrophysicsRetrieval(
+        measurements, start,
+        config(iterations=26, photons=1000, saturation_window=5, photon_growth=2.0,
+               photon_cap=4.0, step_decay=0.5, step_floor=0.25, averaging="uniform",
+               lwc_step=0.01, reff_step=0.1), mie_tables=tables)
+    result = run.run(progress=False)
+    photons = [1000] * 5 + [2000] * 5 + [4000] * 16
+    assert traced == [(p, p) for p in photons]
+    steps = np.array([1.0] * 15 + [0.5] * 5 + [0.25] * 6)
+    np.testing.assert_array_equal(result["log_step"].values, steps)
+    np.testing.assert_array_equal(result["log_photons"].values, 2 * 2 * np.array(photons))
+    what = [d["what"] for d in json.loads(result.attrs["decisions"])]
+    assert what == ["photons 1000 -> 2000", "photons 2000 -> 4000",
+                    "step x 0.5 (now 0.5 of its start)", "step x 0.5 (now 0.25 of its start)",
+                    "no further change: the loss is at its noise floor"]
+    mask = run.mask
+    moved = 0.01 * steps.sum()
+    np.testing.assert_allclose(result["lwc"].values[mask], 0.2 + moved, rtol=1e-6)
+    np.testing.assert_allclose(result["reff"].values[mask], 12.0 - 10 * moved, rtol=1e-6)
+    # the average of the six iterates at step 0.25: 2.5 of those steps behind the last
+    np.testing.assert_allclose(result["lwc_average"].values[mask],
+                               0.2 + moved - 2.5 * 0.0025, rtol=1e-6)
+    assert np.all(result["lwc_average"].values[~mask] == 0.0)
 
 
 def test_the_steps_keep_the_bounds(tables, truth, measurements):

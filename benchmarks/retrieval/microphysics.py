@@ -83,6 +83,7 @@ from cloudct.retrieval.microphysics import (
     microphysical_first_guess,
 )
 from cloudct.retrieval.priors import parse_prior
+from cloudct.retrieval.schedule import SCHEDULES
 
 #: The bands the benchmark knows [micron], each with its measurement seed.
 BAND_SEEDS = {0.672: 1, 1.65: 2, 2.13: 3}
@@ -175,6 +176,7 @@ def run_config(args: argparse.Namespace) -> RetrievalConfig:
                            lwc_step=args.lwc_step, reff_step=args.reff_step,
                            iterations=args.iterations, time_limit=60.0 * args.minutes,
                            image_method=args.image_method, seed=args.seed,
+                           schedule=args.schedule,
                            checkpoint_every=10**9)
 
 
@@ -219,6 +221,8 @@ def main() -> None:
                         default=RetrievalConfig.image_method,
                         help="the estimator of each band's residual images (combined: no "
                              "fireflies of the Mie peak, more time per photon)")
+    parser.add_argument("--schedule", choices=SCHEDULES, default=RetrievalConfig.schedule,
+                        help="the step and photon schedule (cloudct.retrieval.schedule)")
     parser.add_argument("--measurement-photons", type=int, default=2_000_000,
                         help="photons of each band's measurements")
     parser.add_argument("--threads", type=int, default=None,
@@ -278,15 +282,16 @@ def main() -> None:
     if args.medium_output is not None:
         Path(args.medium_output).parent.mkdir(parents=True, exist_ok=True)
         retrieved.to_netcdf(args.medium_output)
-    log = {k: [float(x) for x in v] for k, v in run.log.items()}
+    log = {k: [float(x) for x in v] for k, v in run.state.log.items()}
     log["band_loss"] = [[float(x) for x in losses] for losses in run.band_losses]
     seconds = np.diff(log["seconds"], prepend=0.0)
     result.update(
         log=log,
-        iterations=run.iteration,
+        iterations=run.state.iteration,
+        decisions=run.state.decisions,
         first_iteration_seconds=float(seconds[0]) if seconds.size else None,
         median_iteration_seconds=float(np.median(seconds[1:])) if seconds.size > 1 else None,
-        final={"iteration": run.iteration, "seconds": log["seconds"][-1],
+        final={"iteration": run.state.iteration, "seconds": log["seconds"][-1],
                "loss": log["loss"][-1], **{name: log[name][-1] for name in ERRORS}},
         marks=at_marks(log, [60.0 * m for m in args.marks]),
         load_average_end=os.getloadavg(),
@@ -302,11 +307,14 @@ def marks_markdown(result: dict) -> str:
     for name, v in [("start", start), *result["marks"].items(), ("end", result["final"])]:
         if v is None:
             continue
-        rows.append([name.replace("_", " "), str(v["iteration"]), f"{v['seconds']:.0f}",
-                     f"{v['lwc_epsilon']:.3f}", f"{v['lwc_delta']:+.3f}",
-                     f"{v['reff_absolute_error']:.2f}", f"{v['reff_relative_error']:.3f}",
-                     f"{v['reff_absolute_error_near']:.2f}",
-                     f"{v['reff_relative_error_near']:.3f}", f"{v['loss']:.3g}"])
+        for of in ("", "_average") if name != "start" else ("",):
+            rows.append([name.replace("_", " ") + (" (average)" if of else ""),
+                         str(v["iteration"]), f"{v['seconds']:.0f}",
+                         f"{v['lwc_epsilon' + of]:.3f}", f"{v['lwc_delta' + of]:+.3f}",
+                         f"{v['reff_absolute_error' + of]:.2f}",
+                         f"{v['reff_relative_error' + of]:.3f}",
+                         f"{v['reff_absolute_error_near' + of]:.2f}",
+                         f"{v['reff_relative_error_near' + of]:.3f}", f"{v['loss']:.3g}"])
     table = markdown_table(["time", "iteration", "seconds", "LWC epsilon", "LWC delta",
                             "r_eff error [um]", "r_eff rel. error", "near: r_eff error [um]",
                             "near: rel. error", "loss"], rows)

@@ -308,7 +308,8 @@ def _retrieve_microphysics(args: argparse.Namespace, settings: dict, output: Pat
     run = MicrophysicsRetrieval(measurements, initial, config, truth=truth, backend=backend)
     result = run.run(progress=None)
     save_netcdf(result, output, overwrite=True)  # refused before the run if not --overwrite
-    print(f"wrote {output} (lwc and reff, {run.iteration} iterations, {run.elapsed:.0f} s)")
+    print(f"wrote {output} (lwc and reff, {run.state.iteration} iterations, "
+          f"{run.state.elapsed:.0f} s)")
     return 0
 
 

@@ -290,6 +290,12 @@ class RetrievalConfig:
             )
 
     @property
+    def averaging_decay_factor(self) -> float:
+        """The iterate average's weight of the average so far at each iterate
+        (:func:`~cloudct.retrieval.optimizers.add_to_average`): 1 for ``"uniform"``."""
+        return 1.0 if self.averaging == "uniform" else self.averaging_decay
+
+    @property
     def microphysical(self) -> bool:
         """Whether the unknowns are LWC and r_eff (:mod:`cloudct.retrieval.microphysics`)."""
         return self.unknowns == ("lwc", "reff")

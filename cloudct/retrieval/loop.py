@@ -56,6 +56,7 @@ from cloudct.retrieval.loss import (
 )
 from cloudct.retrieval.metrics import epsilon_by_shell, epsilon_delta
 from cloudct.retrieval.optimizers import (
+    add_to_average,
     block_mean,
     bounded_update,
     make_optimizer,
@@ -63,14 +64,13 @@ from cloudct.retrieval.optimizers import (
     smoothed_gradient,
 )
 from cloudct.retrieval.photon_budget import (
-    decision,
     fit_auto_photons,
     start_count,
     target_seconds,
 )
 from cloudct.retrieval.priors import PriorGrid
 from cloudct.retrieval.sample_average import lbfgsb_window
-from cloudct.retrieval.schedule import advance, noise_weight
+from cloudct.retrieval.schedule import advance, noise_weight, record_decisions
 from cloudct.retrieval.state import LOG_FIELDS, SHELL_PARTS, RetrievalState, state_from_file
 from cloudct.retrieval.stopping import RunStopped, stop_requests
 
@@ -220,10 +220,7 @@ class Retrieval:
                                         target_seconds(cfg.iteration_seconds, self.backend))
         stage, step_scale = s.stage, s.step_scale
         changes += advance(self.config, s, seconds)
-        for what, why in changes:
-            row = decision(s.iteration, what, why)
-            s.decisions.append(row)
-            LOGGER.info("after iteration %d: %s (%s)", row["iteration"], what, why)
+        record_decisions(s, changes)
         if (s.stage, s.step_scale) != (stage, step_scale):  # another optimisation: restart
             s.average_sum, s.average_weight = None, 0.0
         if s.stage != stage:  # other pixels: the prior's noise reference too
@@ -232,16 +229,12 @@ class Retrieval:
     def _add_to_average(self) -> np.ndarray | None:
         """Add the current iterate to the iterate average and return the average (None
         without averaging): sum_k d^(n-k) beta_k / sum_k d^(n-k) over the iterates k = 1 ..
-        n since the last restart, with d = 1 for the uniform (Polyak-Ruppert) average and
-        d = ``averaging_decay`` for the moving average (an exponential moving average with
-        Adam's bias correction, which the normalisation is)."""
+        n since the last restart (:func:`~cloudct.retrieval.optimizers.add_to_average`)."""
         s, cfg = self.state, self.config
         if cfg.averaging == "none":
             return None
-        d = 1.0 if cfg.averaging == "uniform" else cfg.averaging_decay
-        total = 0.0 if s.average_sum is None else d * s.average_sum
-        s.average_sum = total + s.extinction
-        s.average_weight = d * s.average_weight + 1.0
+        s.average_sum, s.average_weight = add_to_average(
+            s.average_sum, s.average_weight, s.extinction, cfg.averaging_decay_factor)
         return self.average()
 
     def average(self) -> np.ndarray | None:

@@ -52,10 +52,18 @@ own dependence on r_eff included (:mod:`cloudct.mc.microphysics_gradient`). A fu
 (``phase_truncation = 0``) makes the 0.672 micron gradient heavy-tailed
 (docs/benchmarks.md, "LWC and r_eff from several bands").
 
-This first version keeps the steps and photons fixed (no plateau schedule, no iterate
-average: the result is the last iterate) and runs one stage; path recycling, checkpoints
-and resuming, L-BFGS-B, a non-exponential transmittance and Dask workers are refused by
-the configuration or here.
+The steps and photons follow the extinction's plateau schedule
+(:func:`cloudct.retrieval.schedule.advance`, ``schedule``, ``plateau`` and their settings):
+where the loss summed over the bands stops falling beyond its Monte Carlo noise, the
+photons of every band grow by ``photon_growth`` (to ``photon_cap`` times the configured
+count, while an iteration of the grown count fits the time left), then both fields' steps
+decay together by ``step_decay`` (to ``step_floor``). Both fields are averaged over the
+iterates since the last change of step (``averaging``: by default an exponential moving
+average, :func:`~cloudct.retrieval.optimizers.add_to_average`): the result holds the last
+iterate (``lwc``, ``reff``) and the average (``lwc_average``, ``reff_average``), whose
+errors the log keeps too (``*_average``). One stage; path recycling, checkpoints and
+resuming, L-BFGS-B, a non-exponential transmittance and Dask workers are refused by the
+configuration or here.
 """
 
 from __future__ import annotations
@@ -97,9 +105,15 @@ from cloudct.retrieval.metrics import (
     reff_absolute_error,
     reff_relative_error,
 )
-from cloudct.retrieval.optimizers import block_mean, make_optimizer, smoothed_gradient
+from cloudct.retrieval.optimizers import (
+    add_to_average,
+    block_mean,
+    make_optimizer,
+    smoothed_gradient,
+)
 from cloudct.retrieval.priors import REFF_PRIORS, PriorGrid
-from cloudct.retrieval.schedule import noise_weight
+from cloudct.retrieval.schedule import advance, noise_weight, record_decisions
+from cloudct.retrieval.state import ScheduleState
 
 LOGGER = logging.getLogger(__name__)
 
@@ -108,11 +122,9 @@ FIRST_GUESS_REFF = 10.0
 #: The optical distance from the cloud's lit and viewed boundary within which the log's
 #: ``_near`` errors are taken: the images' reach (the veiled core lies beyond).
 NEAR = SHELLS[-1]
-#: The columns of the per-iteration log (``log_*`` over ``iteration``): units, long name.
-LOG_FIELDS = {
-    "loss": ("1", "loss summed over the bands, seed paper Eq. (41)"),
-    "loss_std_error": ("1", "Monte Carlo standard error of the loss"),
-    "prior": ("1", "the r_eff terms' part of the loss at the iterate the step started from"),
+#: The errors against a truth of an iterate (:meth:`MicrophysicsRetrieval.errors`): units,
+#: long name.
+ERROR_COLUMNS = {
     "lwc_epsilon": ("1", "epsilon of LWC, seed paper Eq. (54)"),
     "lwc_delta": ("1", "delta of LWC, seed paper Eq. (54)"),
     "reff_absolute_error": ("micron", "mean |r_eff error| over the true cloud"),
@@ -121,12 +133,21 @@ LOG_FIELDS = {
                                  f"optical distance {NEAR:g} of its lit and viewed boundary"),
     "reff_relative_error_near": ("1", f"mean |r_eff error| / r_eff over the true cloud "
                                  f"within optical distance {NEAR:g} of its boundary"),
+}
+#: The log's columns that need a truth: the iterate's errors and the iterate average's.
+ERROR_FIELDS = (*ERROR_COLUMNS, *(f"{key}_average" for key in ERROR_COLUMNS))
+#: The columns of the per-iteration log (``log_*`` over ``iteration``): units, long name.
+LOG_FIELDS = {
+    "loss": ("1", "loss summed over the bands, seed paper Eq. (41)"),
+    "loss_std_error": ("1", "Monte Carlo standard error of the loss"),
+    "prior": ("1", "the prior terms' part of the loss at the iterate the step started from"),
+    **ERROR_COLUMNS,
+    **{f"{key}_average": (units, f"{name}, of the iterate average")
+       for key, (units, name) in ERROR_COLUMNS.items()},
     "photons": ("1", "photons of the iteration, all bands: images' and gradients'"),
+    "step": ("1", "the steps' multiple of lwc_step and reff_step (step decays)"),
     "seconds": ("s", "cumulative wall time"),
 }
-
-#: The log's columns that need a truth.
-ERROR_FIELDS = tuple(key for key in LOG_FIELDS if key.startswith(("lwc_", "reff_")))
 
 
 @dataclass
@@ -370,16 +391,15 @@ class MicrophysicsRetrieval:
                            "reff": make_optimizer(config.optimizer, config.reff_step)}
         self._prior_grid = PriorGrid.of(initial)
         self.truth = None if truth is None else self._true_fields(truth)
-        self.iteration, self.elapsed = 0, 0.0
+        self.state = ScheduleState(log={key: [] for key in LOG_FIELDS},
+                                   photons=config.photons, photons_base=config.photons)
+        # the iterate average of each field: its weighted sum and total weight
+        self.averages: dict[str, tuple[np.ndarray | None, float]] = {}
         self.noise_reference: dict[str, float] = {}
         # e_0: the extinction per unit LWC of the shortest band at FIRST_GUESS_REFF
         self.reference_extinction = float(extinction_lwc_derivative(
             0.0, FIRST_GUESS_REFF, self.tables[int(np.argmin(self.wavelengths))]))
-        self.log: dict[str, list[float]] = {key: [] for key in LOG_FIELDS}
         self.band_losses: list[np.ndarray] = []
-        LOGGER.info("unknowns lwc reff: steps %g g m-3 and %g micron and %d photons kept "
-                    "fixed (no plateau schedule), the last iterate returned (no average)",
-                    config.lwc_step, config.reff_step, config.photons)
 
     def _bounded(self, reff: np.ndarray) -> np.ndarray:
         """r_eff clipped to the tables' range in the mask, 0 outside."""
@@ -426,30 +446,40 @@ class MicrophysicsRetrieval:
             gradient[name] = gradient[name] + scale * chain * d_phi
         return value, gradient
 
-    def errors(self) -> dict[str, float]:
-        """The current iterate's errors against the truth (the log's columns; NaN without
-        a truth)."""
+    def errors(self, fields: dict[str, np.ndarray] | None = None) -> dict[str, float]:
+        """The errors against the truth (:data:`ERROR_COLUMNS`; NaN without a truth) of
+        ``fields`` (``"lwc"`` and ``"reff"``; default: the current iterate)."""
         if self.truth is None:
-            return dict.fromkeys(ERROR_FIELDS, math.nan)
+            return dict.fromkeys(ERROR_COLUMNS, math.nan)
+        fields = fields or {"lwc": self.lwc, "reff": self.reff}
         lwc, reff, distance = self.truth
-        epsilon, delta = epsilon_delta(lwc, self.lwc)
+        epsilon, delta = epsilon_delta(lwc, fields["lwc"])
         near = distance < NEAR
+        r = fields["reff"]
         return {"lwc_epsilon": epsilon, "lwc_delta": delta,
-                "reff_absolute_error": reff_absolute_error(lwc, reff, self.reff),
-                "reff_relative_error": reff_relative_error(lwc, reff, self.reff),
-                "reff_absolute_error_near": reff_absolute_error(lwc, reff, self.reff, near),
-                "reff_relative_error_near": reff_relative_error(lwc, reff, self.reff, near)}
+                "reff_absolute_error": reff_absolute_error(lwc, reff, r),
+                "reff_relative_error": reff_relative_error(lwc, reff, r),
+                "reff_absolute_error_near": reff_absolute_error(lwc, reff, r, near),
+                "reff_relative_error_near": reff_relative_error(lwc, reff, r, near)}
+
+    def average(self) -> dict[str, np.ndarray] | None:
+        """The iterate average of both fields since the last change of step (None without
+        averaging or before the first iterate)."""
+        if not self.averages:
+            return None
+        return {name: total / weight for name, (total, weight) in self.averages.items()}
 
     def step(self) -> dict[str, float]:
-        """One iteration: the loss and gradients over the bands, the r_eff terms, and one
-        projected step on each field; returns the log's row."""
-        cfg = self.config
+        """One iteration: the loss and gradients over the bands, the prior terms, one
+        projected step on each field, the iterate average and the schedule; returns the
+        log's row."""
+        cfg, s = self.config, self.state
         start = time.perf_counter()
-        photons, gradient_photons = cfg.photons_at(0)
+        photons, gradient_photons = cfg.photons_at(0, s.photons)
         ev = loss_and_gradient_over_bands(
             self.medium(), self.bands, self.tables, photons=photons,
             gradient_photons=gradient_photons,
-            seed=cfg.seed * 1_000_003 + self.iteration * len(self.bands),
+            seed=cfg.seed * 1_000_003 + s.iteration * len(self.bands),
             weights=self.weights, method=cfg.image_method, backend=self.backend)
         multiples = {}
         for name in ("lwc", "reff"):
@@ -463,27 +493,42 @@ class MicrophysicsRetrieval:
             gradient = smoothed_gradient(block_mean(gradients[name], self.mask,
                                                     cfg.voxel_blocks[0]),
                                          self.mask, cfg.gradient_smoothing[0])
+            self.optimizers[name].step = getattr(cfg, f"{name}_step") * s.step_scale
             stepped[name] = self.optimizers[name].update(now, gradient, self.mask)
         self.lwc, self.reff = stepped["lwc"], self._bounded(stepped["reff"])
-        self.elapsed += time.perf_counter() - start
-        self.iteration += 1
+        if cfg.averaging != "none":
+            for name, now in (("lwc", self.lwc), ("reff", self.reff)):
+                self.averages[name] = add_to_average(*self.averages.get(name, (None, 0.0)),
+                                                     now, cfg.averaging_decay_factor)
+        average = self.average()
+        average_errors = (self.errors(average) if average is not None
+                          else dict.fromkeys(ERROR_COLUMNS, math.nan))
+        seconds = time.perf_counter() - start
+        s.elapsed += seconds
         row = {"loss": ev.loss, "loss_std_error": ev.loss_std_error, "prior": prior,
-               **self.errors(), "photons": (photons + gradient_photons) * len(self.bands),
-               "seconds": self.elapsed}
+               **self.errors(), **{f"{k}_average": v for k, v in average_errors.items()},
+               "photons": (photons + gradient_photons) * len(self.bands),
+               "step": s.step_scale, "seconds": s.elapsed}
         for key in LOG_FIELDS:
-            self.log[key].append(float(row[key]))
+            s.log[key].append(float(row[key]))
         self.band_losses.append(ev.band_losses)
+        s.iteration += 1
+        step_scale = s.step_scale
+        record_decisions(s, advance(cfg, s, seconds))
+        if s.step_scale != step_scale:  # another optimisation: restart the average
+            self.averages = {}
         return row
 
     def run(self, *, progress: bool | None = None) -> xr.Dataset:
         """Iterate until ``config.iterations`` (or its time limit); return the result."""
         cfg = self.config
-        bar = tqdm(total=cfg.iterations, initial=self.iteration,
+        s = self.state
+        bar = tqdm(total=cfg.iterations, initial=s.iteration,
                    disable=None if progress is None else not progress, desc="retrieve",
                    unit="it")
         try:
-            while self.iteration < cfg.iterations:
-                if cfg.time_limit is not None and self.elapsed >= cfg.time_limit:
+            while s.iteration < cfg.iterations:
+                if cfg.time_limit is not None and s.elapsed >= cfg.time_limit:
                     break
                 row = self.step()
                 bar.update(1)
@@ -493,28 +538,34 @@ class MicrophysicsRetrieval:
         return self.result()
 
     def result(self) -> xr.Dataset:
-        """The retrieved medium (``lwc``, ``reff``) with the carved mask, the log over
-        ``iteration`` (``log_band_loss`` over (iteration, band) too) and the run's
-        settings."""
+        """The retrieved medium (``lwc``, ``reff``; ``lwc_average`` and ``reff_average``
+        with averaging) with the carved mask, the log over ``iteration`` (``log_band_loss``
+        over (iteration, band) too), the schedule's decisions and the run's settings."""
+        s = self.state
         ds = self.medium().assign_coords(
-            iteration=np.arange(1, self.iteration + 1),
+            iteration=np.arange(1, s.iteration + 1),
             wavelength=(BAND, self.wavelengths, {"units": "micron",
                                                  "long_name": "band wavelength"}))
         for key, (units, name) in LOG_FIELDS.items():
-            ds[f"log_{key}"] = ("iteration", np.array(self.log[key], dtype=float),
+            ds[f"log_{key}"] = ("iteration", np.array(s.log[key], dtype=float),
                                 {"units": units, "long_name": name})
         ds["log_band_loss"] = (("iteration", BAND),
-                               np.reshape(self.band_losses, (self.iteration, -1)),
+                               np.reshape(self.band_losses, (s.iteration, -1)),
                                {"units": "1", "long_name": "each band's loss, Eq. (41)"})
         ds["cloud_mask"] = (GRID, self.mask.astype(np.int8),
                             {"units": "1", "long_name": "carved cloud hull (1 = inside)"})
+        average = self.average()
+        for name in () if average is None else ("lwc", "reff"):
+            ds[f"{name}_average"] = ds[name].transpose(*GRID).copy(data=average[name])
+            ds[f"{name}_average"].attrs["long_name"] = (
+                f"{self.config.averaging} average of the iterates of {name} since the last "
+                "change of step")
         ds.attrs.update(
             title="cloudct retrieval of LWC and r_eff", unknowns="lwc reff",
             config=json.dumps(asdict(self.config)),
             config_toml=config_to_toml(self.config, header="cloudct retrieve --config FILE "
                                        "re-runs this retrieval (docs/retrieval_config.md)"),
-            iterations_done=self.iteration, elapsed_s=self.elapsed,
-            reff_range=list(self.reff_range), reff_range_units="micron",
+            **s.attrs(), reff_range=list(self.reff_range), reff_range_units="micron",
             backend=self.backend, device=device_description(self.backend),
         )
         return ds

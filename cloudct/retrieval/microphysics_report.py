@@ -92,7 +92,7 @@ def result_tables(result: xr.Dataset, wavelengths: Sequence[float]) -> list[xr.D
 
 
 def microphysics_errors(result: xr.Dataset, truth: xr.Dataset,
-                        distance: np.ndarray | None = None) -> dict[str, float]:
+                        distance: np.ndarray | None = None, of: str = "") -> dict[str, float]:
     """The result's errors against ``truth`` under the keys of the run's log
     (:data:`cloudct.retrieval.microphysics.LOG_FIELDS`): ``lwc_epsilon``, ``lwc_delta``
     (:func:`~cloudct.retrieval.metrics.epsilon_delta` of LWC), ``reff_absolute_error``
@@ -101,9 +101,10 @@ def microphysics_errors(result: xr.Dataset, truth: xr.Dataset,
     :func:`~cloudct.retrieval.metrics.reff_relative_error`), and their ``_near`` variants
     over its voxels whose ``distance`` (optical distance from the cloud's lit and viewed
     boundary, :func:`boundary_distance`) is below
-    :data:`~cloudct.retrieval.microphysics.NEAR` (NaN without ``distance``)."""
+    :data:`~cloudct.retrieval.microphysics.NEAR` (NaN without ``distance``); of the fields
+    ``lwc`` + ``of`` and ``reff`` + ``of`` (``"_average"``: the iterate average's)."""
     lwc, reff = true_fields(result, truth)
-    retrieved_lwc, retrieved_reff = (result[name].transpose(*GRID).values.astype(float)
+    retrieved_lwc, retrieved_reff = (result[name + of].transpose(*GRID).values.astype(float)
                                      for name in ("lwc", "reff"))
     epsilon, delta = epsilon_delta(lwc, retrieved_lwc)
     errors = {"lwc_epsilon": epsilon, "lwc_delta": delta,
@@ -237,21 +238,26 @@ def _error_lines(result: xr.Dataset, truth: xr.Dataset, distance: np.ndarray | N
                  out: Path) -> list[str]:
     """The section on the errors against the truth, with the log's error curves."""
     e = microphysics_errors(result, truth, distance)
+    media = [("last iterate (lwc, reff)", e)]
+    if "lwc_average" in result:
+        averaging = json.loads(result.attrs.get("config", "{}")).get("averaging", "iterate")
+        media.append((f"{averaging} average of the iterates (lwc_average, reff_average)",
+                      microphysics_errors(result, truth, distance, of="_average")))
 
-    def near(key: str, text: str) -> str:
-        return "-" if distance is None else text.format(e[f"{key}_near"])
+    def near(errors: dict[str, float], key: str, text: str) -> str:
+        return "-" if distance is None else text.format(errors[f"{key}_near"])
 
     lines = [
         "## Error against the truth", "",
-        "| LWC epsilon (Eq. 54) | LWC delta (Eq. 54) |", "| --- | --- |",
-        f"| {e['lwc_epsilon']:.1%} | {e['lwc_delta']:+.1%} |", "",
-        f"| r_eff error | over the true cloud | within optical distance {NEAR:g} of its lit "
-        "and viewed boundary |",
-        "| --- | --- | --- |",
-        f"| mean absolute [μm] | {e['reff_absolute_error']:.2f} | "
-        f"{near('reff_absolute_error', '{:.2f}')} |",
-        f"| mean relative | {e['reff_relative_error']:.1%} | "
-        f"{near('reff_relative_error', '{:.1%}')} |", "",
+        f"r_eff's mean errors over the true cloud and (near) within optical distance "
+        f"{NEAR:g} of its lit and viewed boundary:", "",
+        "| medium | LWC epsilon (Eq. 54) | LWC delta (Eq. 54) | r_eff [μm] | r_eff relative "
+        "| near: r_eff [μm] | near: r_eff relative |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+        *(f"| {name} | {x['lwc_epsilon']:.1%} | {x['lwc_delta']:+.1%} | "
+          f"{x['reff_absolute_error']:.2f} | {x['reff_relative_error']:.1%} | "
+          f"{near(x, 'reff_absolute_error', '{:.2f}')} | "
+          f"{near(x, 'reff_relative_error', '{:.1%}')} |" for name, x in media), "",
         "The optical distance of a voxel: the true cloud's optical depth towards the sun plus "
         "that towards the nearest camera, in the shortest band (cloudct.mc.visibility; "
         "beyond it lies the veiled core, which the images barely see)."

@@ -124,3 +124,13 @@ def make_optimizer(name: str, step: float) -> Adam | MomentumSGD:
     if name == "sgd":
         return MomentumSGD(step=step)
     raise ValueError(f"optimizer must be 'adam' or 'sgd', got {name!r}")
+
+
+def add_to_average(total: np.ndarray | None, weight: float, iterate: np.ndarray,
+                   decay: float) -> tuple[np.ndarray, float]:
+    """The weighted sum and total weight of an iterate average with ``iterate`` added:
+    sum_k d^(n-k) x_k and sum_k d^(n-k) over the iterates k = 1 .. n since the average's
+    (re)start (``total`` None), whose ratio is the average: d = 1 the uniform
+    (Polyak-Ruppert) average, d < 1 an exponential moving average with Adam's bias
+    correction (which the normalisation is)."""
+    return (iterate.copy() if total is None else decay * total + iterate), decay * weight + 1.0

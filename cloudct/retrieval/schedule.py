@@ -36,15 +36,20 @@ floor the run keeps iterating at its noise floor, and says so once in its decisi
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from scipy import stats
 
+from cloudct.retrieval.photon_budget import decision
+
 if TYPE_CHECKING:
     from cloudct.retrieval.config import RetrievalConfig
-    from cloudct.retrieval.state import RetrievalState
+    from cloudct.retrieval.state import ScheduleState
+
+LOGGER = logging.getLogger(__name__)
 
 SCHEDULES = ("noise", "threshold", "fixed")
 PLATEAU_ANSWERS = ("photons", "step")
@@ -151,7 +156,7 @@ def noise_weight(gradient_std_error: np.ndarray, mask: np.ndarray, reference: fl
     return rms / reference, rms
 
 
-def advance(config: RetrievalConfig, state: RetrievalState, seconds: float
+def advance(config: RetrievalConfig, state: ScheduleState, seconds: float
             ) -> list[tuple[str, str]]:
     """The schedule after an iteration that took ``seconds``: the stage, photons and step
     changed in ``state`` (and the window restarted) where the loss is on a plateau, or where
@@ -167,9 +172,7 @@ def advance(config: RetrievalConfig, state: RetrievalState, seconds: float
     if not s.photons_settled or s.at_floor:
         return []
     window = cfg.saturation_window
-    losses = [loss for i, (loss, st) in enumerate(zip(s.log["loss"], s.log["stage"],
-                                                       strict=True))
-              if st == s.stage and i >= s.decayed_at]
+    losses = s.log["loss"][s.decayed_at:]  # every change of stage restarts the window
     if cfg.schedule == "noise":
         if len(losses) < window:
             return []
@@ -186,7 +189,16 @@ def advance(config: RetrievalConfig, state: RetrievalState, seconds: float
     return _answer(cfg, s, seconds, why, cfg.plateau) if plateau else []
 
 
-def _answer(cfg: RetrievalConfig, s: RetrievalState, seconds: float, why: str,
+def record_decisions(s: ScheduleState, changes: list[tuple[str, str]]) -> None:
+    """Add the ``changes`` made after the state's last iteration, as (what, why), to its
+    decisions, each said in one line of the log."""
+    for what, why in changes:
+        row = decision(s.iteration, what, why)
+        s.decisions.append(row)
+        LOGGER.info("after iteration %d: %s (%s)", row["iteration"], what, why)
+
+
+def _answer(cfg: RetrievalConfig, s: ScheduleState, seconds: float, why: str,
             plateau: str) -> list[tuple[str, str]]:
     """The answer to a plateau (the module docstring); restarts the window."""
     s.decayed_at = len(s.log["loss"])

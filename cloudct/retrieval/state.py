@@ -43,39 +43,53 @@ LOG_ATTRS = {
 }
 
 
-@dataclass
-class RetrievalState:
-    """Everything that changes during a run."""
+@dataclass(kw_only=True)
+class ScheduleState:
+    """What the step and photon schedule (:func:`cloudct.retrieval.schedule.advance`) reads
+    and changes during a run, of the extinction's retrieval and of LWC and r_eff's alike;
+    ``log`` holds at least the columns ``loss`` and ``loss_std_error``."""
 
-    iteration: int
-    stage: int
-    extinction: np.ndarray
-    optimizer_state: dict[str, np.ndarray]
-    log: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in LOG_FIELDS})
+    iteration: int = 0
+    stage: int = 0
+    log: dict[str, list[float]] = field(
+        default_factory=lambda: {"loss": [], "loss_std_error": []})
     elapsed: float = 0.0
-    step_scale: float = 1.0  # the step is config.step x this (step decay)
+    step_scale: float = 1.0  # the step is the configured step x this (step decay)
     decayed_at: int = 0  # iteration of the schedule's last change (its window restarts)
-    average_sum: np.ndarray | None = None  # weighted sum of the iterates since the restart
-    average_weight: float = 0.0  # its sum of weights (Retrieval.average)
     photons: int = 0  # gradient paths per iteration at the finest stage, now
     photons_settled: bool = True  # photons "auto": the count fits the device
     photons_base: int = 0  # the count the run settled at (photon_cap's unit)
     decays: int = 0  # step decays so far
     at_floor: bool = False  # the photons at their cap and the step at its floor
-    noise_reference: float = 0.0  # sparsity_schedule "noise": the gradient rms of the stage's first
-    # iteration at the settled photon count
     decisions: list[dict] = field(default_factory=list)  # what the run changed, and why
 
     def attrs(self) -> dict:
-        """The state's scalars as netCDF attributes (:func:`state_from_file` reads them)."""
+        """The schedule's scalars as netCDF attributes."""
         return dict(
             iterations_done=self.iteration, stage=self.stage, elapsed_s=self.elapsed,
-            step_scale=self.step_scale, decayed_at=self.decayed_at,
-            average_weight=self.average_weight, photons_now=self.photons,
+            step_scale=self.step_scale, decayed_at=self.decayed_at, photons_now=self.photons,
             photons_settled=int(self.photons_settled), photons_base=self.photons_base,
             decays=self.decays, at_floor=int(self.at_floor),
-            noise_reference=self.noise_reference, decisions=json.dumps(self.decisions),
+            decisions=json.dumps(self.decisions),
         )
+
+
+@dataclass(kw_only=True)
+class RetrievalState(ScheduleState):
+    """Everything that changes during a retrieval of the extinction."""
+
+    extinction: np.ndarray
+    optimizer_state: dict[str, np.ndarray]
+    log: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in LOG_FIELDS})
+    average_sum: np.ndarray | None = None  # weighted sum of the iterates since the restart
+    average_weight: float = 0.0  # its sum of weights (Retrieval.average)
+    noise_reference: float = 0.0  # sparsity_schedule "noise": the gradient rms of the stage's first
+    # iteration at the settled photon count
+
+    def attrs(self) -> dict:
+        """The state's scalars as netCDF attributes (:func:`state_from_file` reads them)."""
+        return {**super().attrs(), "average_weight": self.average_weight,
+                "noise_reference": self.noise_reference}
 
     def add_log_to(self, ds: xr.Dataset) -> xr.Dataset:
         """``ds`` with the log as ``log_*`` variables over ``iteration``."""
