@@ -147,19 +147,29 @@ def test_correction_factor_is_exactly_one_under_the_reference(case):
 # ----------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("aim", [0.0, DEFAULT_AIM_FRACTION])
+@pytest.fixture(scope="module", params=[0.0, DEFAULT_AIM_FRACTION])
+def aimed_store(case, request):
+    """``(aim, store)``: the reference paths of each scene recorded with aim fraction
+    ``aim`` (400,000 photons), once for both changes of the medium that
+    :func:`test_recycled_images_agree_with_fresh_images` replays them under (a replay only
+    reads its store)."""
+    _, medium, scene, rr = case
+    aim = request.param
+    return aim, record_paths(
+        medium, scene, photons=400_000, seed=1, batches=BATCHES, aim_fraction=aim, **rr
+    )
+
+
 @pytest.mark.parametrize("change", ["voxelwise", "scaled"])
-def test_recycled_images_agree_with_fresh_images(case, change, aim):
+def test_recycled_images_agree_with_fresh_images(case, aimed_store, change):
     """Voxel-wise factors 0.9-1.1 (the images hardly move), and all cloud scaled by 1.25
     (they move by many standard errors, so the correction factor must do its work). Paths
     aimed at the cameras (``aim`` > 0) keep their reference weights f / q in the store and
     are compared with fresh aimed paths; the plain sampler also shows that the comparison
     has the power to see a store without its correction factors."""
     name, medium, scene, rr = case
+    aim, store = aimed_store
     target = perturbed(medium) if change == "voxelwise" else scaled(medium, 1.25)
-    store = record_paths(
-        medium, scene, photons=400_000, seed=1, batches=BATCHES, aim_fraction=aim, **rr
-    )
     recycled, info = replay_images(store, target)
     fresh, _ = render_batches(
         target, scene, photons=400_000, seed=2, batches=BATCHES, progress=False,
