@@ -33,10 +33,9 @@ from cloudct.retrieval.metrics import reff_absolute_error, reff_relative_error
 from cloudct.retrieval.microphysics import (
     BandsLossGradient,
     MicrophysicsRetrieval,
-    brightness_reff,
     loss_and_gradient_over_bands,
-    microphysical_first_guess,
 )
+from cloudct.retrieval.microphysics_first_guess import brightness_reff, microphysical_first_guess
 from cloudct.retrieval.priors import PriorGrid, reff_growth, reff_smoothness
 
 WAVELENGTHS = (0.672, 2.13)

@@ -26,7 +26,7 @@ First guess: as ``cloudct retrieve --unknowns lwc reff --init carve``: the 0.672
 band carved (:func:`cloudct.retrieval.carving.carve`, then ``initial_medium``) on the
 grid of the truth with Mie optics (for the single cloud the command's default template),
 its extinction made LWC at the constant r_eff with which the longest band renders as
-bright as measured (:func:`cloudct.retrieval.microphysics.brightness_reff` and
+bright as measured (:func:`cloudct.retrieval.microphysics_first_guess.brightness_reff` and
 ``microphysical_first_guess``); the mask is where that
 LWC is positive (the retrieval's default: the hull less its voxels of zero carved
 extinction). The retrieval then runs with ``--photons`` gradient photons per band and
@@ -76,12 +76,8 @@ from cloudct.optics import to_optical
 from cloudct.physics.mie import DEFAULT_WAVELENGTH, mie_table
 from cloudct.retrieval.carving import carve, initial_medium
 from cloudct.retrieval.config import RetrievalConfig
-from cloudct.retrieval.microphysics import (
-    ERROR_FIELDS,
-    MicrophysicsRetrieval,
-    brightness_reff,
-    microphysical_first_guess,
-)
+from cloudct.retrieval.microphysics import ERROR_FIELDS, MicrophysicsRetrieval
+from cloudct.retrieval.microphysics_first_guess import brightness_reff, microphysical_first_guess
 from cloudct.retrieval.priors import parse_prior
 from cloudct.retrieval.schedule import SCHEDULES
 

@@ -63,12 +63,8 @@ from cloudct.retrieval.config_file import (
 )
 from cloudct.retrieval.loop import Retrieval
 from cloudct.retrieval.loss import BATCHES
-from cloudct.retrieval.microphysics import (
-    MicrophysicsRetrieval,
-    brightness_reff,
-    microphysical_first_guess,
-    retrieval_bands,
-)
+from cloudct.retrieval.microphysics import MicrophysicsRetrieval, retrieval_bands
+from cloudct.retrieval.microphysics_first_guess import brightness_reff, microphysical_first_guess
 from cloudct.retrieval.microphysics_report import (
     RESULT_VARIABLES,
     is_microphysical_result,
