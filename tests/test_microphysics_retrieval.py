@@ -25,6 +25,7 @@ from cloudct.measurements import band_measurements, synthesize_measurements
 from cloudct.medium import microphysical_medium, optical_medium, save_medium
 from cloudct.netcdf import save_netcdf
 from cloudct.optics import to_optical
+from cloudct.physics.microphysics import cloud_extinction
 from cloudct.physics.mie import compute_mie_table
 from cloudct.retrieval.config import RetrievalConfig
 from cloudct.retrieval.loop import Retrieval
@@ -35,8 +36,13 @@ from cloudct.retrieval.microphysics import (
     MicrophysicsRetrieval,
     loss_and_gradient_over_bands,
 )
-from cloudct.retrieval.microphysics_first_guess import brightness_reff, microphysical_first_guess
-from cloudct.retrieval.priors import PriorGrid, reff_growth, reff_smoothness
+from cloudct.retrieval.microphysics_first_guess import (
+    brightness_reff,
+    first_guess,
+    microphysical_first_guess,
+    stage_attrs,
+)
+from cloudct.retrieval.priors import Prior, PriorGrid, reff_growth, reff_smoothness
 
 WAVELENGTHS = (0.672, 2.13)
 TABLE_REFF = [4.0, 7.0, 10.0, 13.0, 16.0, 20.0]
@@ -172,6 +178,23 @@ def test_the_result_holds_lwc_reff_and_the_log(retrieval):
     assert RetrievalConfig(**json.loads(result.attrs["config"])) == run.config
 
 
+def constant_gradient(lwc_slope: float, reff_slope: float, traced: list | None = None):
+    """A stand-in for loss_and_gradient_over_bands: loss 1 +- 0.01 and the gradients
+    ``lwc_slope`` and ``reff_slope`` everywhere, without noise; each call's photons are
+    appended to ``traced``."""
+
+    def evaluate(medium, bands, tables, *, photons, gradient_photons, **_):
+        if traced is not None:
+            traced.append((photons, gradient_photons))
+        ones = np.ones(medium["lwc"].shape)
+        return BandsLossGradient(1.0, np.array([0.5, 0.5]), 0.01,
+                                 {"lwc": lwc_slope * ones, "reff": reff_slope * ones},
+                                 {"lwc": 0.0 * ones, "reff": 0.0 * ones},
+                                 {"wall_time": 0.0, "photons": 0})
+
+    return evaluate
+
+
 def test_the_schedule_grows_the_photons_then_decays_both_steps(monkeypatch, tables,
                                                                measurements):
     """A loss flat at its noise (1 +- 0.01) and a constant gradient (-1 in LWC, +1 in
@@ -181,16 +204,8 @@ def test_the_schedule_grows_the_photons_then_decays_both_steps(monkeypatch, tabl
     step when the gradient is constant, so the fields move by exactly the logged steps,
     and the uniform iterate average restarts at each change of step."""
     traced = []
-
-    def flat(medium, bands, tables, *, photons, gradient_photons, **_):
-        traced.append((photons, gradient_photons))
-        ones = np.ones(medium["lwc"].shape)
-        return BandsLossGradient(1.0, np.array([0.5, 0.5]), 0.01,
-                                 {"lwc": -ones, "reff": ones},
-                                 {"lwc": 0.0 * ones, "reff": 0.0 * ones},
-                                 {"wall_time": 0.0, "photons": 0})
-
-    monkeypatch.setattr("cloudct.retrieval.microphysics.loss_and_gradient_over_bands", flat)
+    monkeypatch.setattr("cloudct.retrieval.microphysics.loss_and_gradient_over_bands",
+                        constant_gradient(-1.0, 1.0, traced))
     start = cloud_of(0.2, (12.0, 12.0, 12.0))
     run = MicrophysicsRetrieval(
         measurements, start,
@@ -215,6 +230,55 @@ def test_the_schedule_grows_the_photons_then_decays_both_steps(monkeypatch, tabl
     np.testing.assert_allclose(result["lwc_average"].values[mask],
                                0.2 + moved - 2.5 * 0.0025, rtol=1e-6)
     assert np.all(result["lwc_average"].values[~mask] == 0.0)
+
+
+def test_holding_the_extinction_moves_reff_alone_and_lwc_along_it(monkeypatch, tables,
+                                                                  measurements):
+    """hold_extinction: one SGD step on the constant gradients a = dL/dLWC = 0.3 and b =
+    dL/dr_eff = 0.02 (with a heavy L1 term on the extinction, which has nothing to move
+    while it is held) moves r_eff by -step (b + a dLWC/dr_eff), the derivative at fixed
+    0.672 micron extinction taken here by central differences of LWC = beta / e(r_eff);
+    LWC follows, so that the extinction stays the first guess's to rounding."""
+    monkeypatch.setattr("cloudct.retrieval.microphysics.loss_and_gradient_over_bands",
+                        constant_gradient(0.3, 0.02))
+    start = cloud_of(0.2, (12.0, 12.0, 12.0))
+    held = config(iterations=1, optimizer="sgd", reff_step=2.0, hold_extinction=True,
+                  gradient_smoothing=(0.0,),
+                  priors=(Prior("l1", 1e3, "fixed"),))
+    result = MicrophysicsRetrieval(measurements, start, held, mie_tables=tables).run(
+        progress=False)
+    beta = cloud_extinction(start["lwc"].values, start["reff"].values, tables[0])[CLOUD]
+
+    def lwc_at(reff: float) -> np.ndarray:
+        return beta / cloud_extinction(1.0, reff, tables[0])
+
+    slope = (lwc_at(12.001) - lwc_at(11.999)) / 0.002  # e(r_eff): linear on 10-13 micron
+    np.testing.assert_allclose(result["reff"].values[CLOUD], 12.0 - 2.0 * (0.02 + 0.3 * slope),
+                               rtol=1e-9)
+    np.testing.assert_allclose(cloud_extinction(result["lwc"].values, result["reff"].values,
+                                                tables[0])[CLOUD], beta, rtol=1e-12)
+    assert np.all(result["lwc"].values[CLOUD] < 0.2)  # less water (dL/dLWC > 0): smaller r_eff
+
+
+def test_the_extinction_stage_starts_lwc_and_reff(tables, truth, measurements):
+    """extinction_share 0.5 of 4 iterations: the extinction at 0.672 micron is retrieved
+    for 2 iterations from a stand-in for the carving (the true extinction x 0.7); the
+    first guess holds its iterate average as LWC at one fitted r_eff, its mask is that
+    run's, and the retrieval of LWC and r_eff gets the 2 iterations left."""
+    optical = to_optical(truth, tables[0], optics="mie")
+    carved = optical.assign(cloud_extinction=0.7 * optical["cloud_extinction"])
+    guess = first_guess(measurements, carved,
+                        config(iterations=4, extinction_share=0.5, iteration_seconds=0.2),
+                        table=tables[0], band_table=tables[1])
+    stage = guess.extinction_result
+    assert stage.sizes["iteration"] == 2 and guess.config.iterations == 2
+    assert stage["log_epsilon"].isnull().all()  # no truth given
+    extinction = stage["cloud_extinction_average"].transpose("x", "y", "z").values
+    lwc, reff = (guess.medium[name].transpose("x", "y", "z").values for name in ("lwc", "reff"))
+    np.testing.assert_allclose(cloud_extinction(lwc, reff, tables[0]), extinction, rtol=1e-12)
+    assert np.all(reff[extinction > 0] == guess.reff) and tables[0]["reff"][0] <= guess.reff
+    np.testing.assert_array_equal(guess.mask, stage["cloud_mask"].values.astype(bool))
+    assert stage_attrs(guess)["extinction_stage_iterations"] == 2
 
 
 def test_the_steps_keep_the_bounds(tables, truth, measurements):
@@ -289,6 +353,14 @@ def test_the_command_line_retrieves_lwc_and_reff(tmp_path, capsys, truth):
     result = xr.load_dataset(out)
     assert result["lwc"].attrs["units"] == "g m-3" and result["reff"].attrs["units"] == "micron"
     assert result.sizes["iteration"] == 2 and result.sizes["band"] == 3
+    assert result.attrs["extinction_stage_iterations"] == 0
+    # the extinction first: 2 of 4 iterations, then r_eff at that extinction
+    assert main(["retrieve", *common, "--iterations", "4", "--extinction-share", "0.5",
+                 "--iteration-seconds", "0.2", "-o", str(tmp_path / "staged.nc")]) == 0
+    assert "retrieving the extinction at 0.672 micron first" in capsys.readouterr().out
+    staged = xr.load_dataset(tmp_path / "staged.nc")
+    assert staged.attrs["extinction_stage_iterations"] == 2 and staged.sizes["iteration"] == 2
+    assert json.loads(staged.attrs["config"])["hold_extinction"] is True
     assert np.all(np.isfinite(result["log_reff_absolute_error"].values))
     for extra, message in ((["--recycling", "fixed"], "path recycling is not supported"),
                            (["--resume"], "--resume: the retrieval of --unknowns lwc reff "

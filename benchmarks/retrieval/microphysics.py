@@ -77,7 +77,7 @@ from cloudct.physics.mie import DEFAULT_WAVELENGTH, mie_table
 from cloudct.retrieval.carving import carve, initial_medium
 from cloudct.retrieval.config import RetrievalConfig
 from cloudct.retrieval.microphysics import ERROR_FIELDS, MicrophysicsRetrieval
-from cloudct.retrieval.microphysics_first_guess import brightness_reff, microphysical_first_guess
+from cloudct.retrieval.microphysics_first_guess import FirstGuess, first_guess, stage_attrs
 from cloudct.retrieval.priors import parse_prior
 from cloudct.retrieval.schedule import SCHEDULES
 
@@ -145,24 +145,34 @@ def measurements_for(truth: xr.Dataset, scene: str, bands: list[float], photons:
     return stack_bands(sets), seconds
 
 
-def first_guess(measurements: xr.Dataset, truth: xr.Dataset) -> tuple[xr.Dataset, dict]:
+def carved_first_guess(measurements: xr.Dataset, truth: xr.Dataset, config: RetrievalConfig
+                       ) -> tuple[FirstGuess, dict]:
     """``cloudct retrieve --unknowns lwc reff --init carve``'s first guess: the 0.672
-    micron band carved on the truth's grid with Mie optics, its extinction made LWC at the
-    r_eff with which the longest band renders as bright as measured (``brightness_reff``);
-    and what the carving and the fit found (hull voxels, mean extinction, r_eff, seconds)."""
+    micron band carved on the truth's grid with Mie optics, with ``config.extinction_share``
+    > 0 its extinction retrieved for that share of the run, the extinction made LWC at the
+    r_eff with which the longest band renders as bright as measured
+    (:func:`cloudct.retrieval.microphysics_first_guess.first_guess`); and what the carving,
+    the extinction stage and the fit found (hull voxels, mean extinction, the stage's
+    iterations, seconds and epsilon of the extinction, r_eff, seconds)."""
     t0 = time.perf_counter()
     red = band_measurements(measurements, DEFAULT_WAVELENGTH)
     grid = to_optical(truth, optics="mie")
     carved = carve(red, grid)
     initial = initial_medium(carved, grid)
-    table = mie_table(wavelength=DEFAULT_WAVELENGTH)
     carving_seconds = time.perf_counter() - t0
-    reff = brightness_reff(initial, measurements, table)
-    guess = microphysical_first_guess(initial, table, reff)
-    return guess, {"seconds": time.perf_counter() - t0, "carving_seconds": carving_seconds,
-                   "hull_voxels": int(carved["hull"].values.sum()),
-                   "extinction_estimate": float(carved.attrs["extinction_estimate"]),
-                   "first_guess_reff": reff}
+    guess = first_guess(measurements, initial, config,
+                        table=mie_table(wavelength=DEFAULT_WAVELENGTH), truth=truth,
+                        progress=True)
+    found = {"seconds": time.perf_counter() - t0, "carving_seconds": carving_seconds,
+             "hull_voxels": int(carved["hull"].values.sum()),
+             "extinction_estimate": float(carved.attrs["extinction_estimate"]),
+             **stage_attrs(guess)}
+    stage = guess.extinction_result
+    if stage is not None:
+        found["extinction_stage_log"] = {
+            key: [float(x) for x in stage[f"log_{key}"].values]
+            for key in ("seconds", "epsilon", "delta", "epsilon_average", "delta_average")}
+    return guess, found
 
 
 def run_config(args: argparse.Namespace) -> RetrievalConfig:
@@ -172,14 +182,15 @@ def run_config(args: argparse.Namespace) -> RetrievalConfig:
                            lwc_step=args.lwc_step, reff_step=args.reff_step,
                            iterations=args.iterations, time_limit=60.0 * args.minutes,
                            image_method=args.image_method, seed=args.seed,
-                           schedule=args.schedule,
-                           checkpoint_every=10**9)
+                           schedule=args.schedule, extinction_share=args.extinction_share,
+                           hold_extinction=args.hold_extinction, checkpoint_every=10**9)
 
 
-def at_marks(log: dict, marks_s: list[float]) -> dict:
+def at_marks(log: dict, marks_s: list[float], offset: float = 0.0) -> dict:
     """The errors and loss of the last iteration finished by each time mark (None where
-    the run did not last that long)."""
-    seconds = np.asarray(log["seconds"])
+    the run did not last that long or had not begun: its log's seconds start ``offset``
+    seconds into the run, after the extinction stage)."""
+    seconds = np.asarray(log["seconds"]) + offset
     out = {}
     for mark in marks_s:
         key = f"{mark / 60:g}_min"
@@ -219,6 +230,13 @@ def main() -> None:
                              "fireflies of the Mie peak, more time per photon)")
     parser.add_argument("--schedule", choices=SCHEDULES, default=RetrievalConfig.schedule,
                         help="the step and photon schedule (cloudct.retrieval.schedule)")
+    parser.add_argument("--extinction-share", type=float,
+                        default=RetrievalConfig.extinction_share,
+                        help="the share of --minutes first spent retrieving the extinction "
+                             "at 0.672 micron")
+    parser.add_argument("--hold-extinction", action=argparse.BooleanOptionalAction,
+                        default=RetrievalConfig.hold_extinction,
+                        help="keep the first guess's extinction and retrieve r_eff alone")
     parser.add_argument("--measurement-photons", type=int, default=2_000_000,
                         help="photons of each band's measurements")
     parser.add_argument("--threads", type=int, default=None,
@@ -252,8 +270,8 @@ def main() -> None:
     truth = truth_of(args.scene, Path(args.les))
     measurements, synth_s = measurements_for(truth, args.scene, args.bands,
                                              args.measurement_photons, Path(args.work))
-    initial, carving = first_guess(measurements, truth)
-    config = run_config(args)
+    guess, carving = carved_first_guess(measurements, truth, run_config(args))
+    config = guess.config
     t0 = time.perf_counter()
     tables = [mie_table(wavelength=w) for w in args.bands]
     tables_s = time.perf_counter() - t0
@@ -266,10 +284,12 @@ def main() -> None:
         "measurement_seconds": synth_s,
         "mie_table_seconds": tables_s,
         "carving": carving,
-        "start": "carved hull of the 0.672 micron band, LWC at r_eff 10 micron",
+        "start": "the 0.672 micron band's extinction (carved, or retrieved for "
+                 "extinction_share of the run) as LWC at the brightness-fitted r_eff",
         "config": dict(vars(config)),
     }
-    run = MicrophysicsRetrieval(measurements, initial, config, truth=truth, mie_tables=tables)
+    run = MicrophysicsRetrieval(measurements, guess.medium, config, mask=guess.mask,
+                                truth=truth, mie_tables=tables)
     result["reff_range"] = list(run.reff_range)
     result["mask_voxels"] = int(run.mask.sum())
     result["true_cloud_voxels"] = int((run.truth[0] > 0).sum())
@@ -287,9 +307,11 @@ def main() -> None:
         decisions=run.state.decisions,
         first_iteration_seconds=float(seconds[0]) if seconds.size else None,
         median_iteration_seconds=float(np.median(seconds[1:])) if seconds.size > 1 else None,
-        final={"iteration": run.state.iteration, "seconds": log["seconds"][-1],
+        final={"iteration": run.state.iteration,
+               "seconds": log["seconds"][-1] + carving["extinction_stage_seconds"],
                "loss": log["loss"][-1], **{name: log[name][-1] for name in ERRORS}},
-        marks=at_marks(log, [60.0 * m for m in args.marks]),
+        marks=at_marks(log, [60.0 * m for m in args.marks],
+                       carving["extinction_stage_seconds"]),
         load_average_end=os.getloadavg(),
     )
     write_result(result, args.output, marks_markdown)
@@ -320,8 +342,22 @@ def marks_markdown(result: dict) -> str:
              f"{result['median_iteration_seconds'] or float('nan'):.1f} s each); carved hull "
              f"{result['carving']['hull_voxels']} voxels, first guess r_eff "
              f"{result['carving']['first_guess_reff']:.2f} micron, true cloud "
-             f"{result['true_cloud_voxels']}.", "", *table]
+             f"{result['true_cloud_voxels']}.", *_stage_line(result["carving"]), "",
+             *table]
     return "\n".join(lines) + "\n"
+
+
+def _stage_line(carving: dict) -> list[str]:
+    """A line on the extinction stage (none without one)."""
+    stage = carving.get("extinction_stage_log")
+    if not stage:
+        return []
+    return ["", f"Extinction stage (0.672 micron): {carving['extinction_stage_iterations']} "
+            f"iterations in {carving['extinction_stage_seconds']:.0f} s, epsilon of the "
+            f"extinction {stage['epsilon'][0]:.3f} -> {stage['epsilon'][-1]:.3f} (iterate "
+            f"average {stage['epsilon_average'][-1]:.3f}, delta "
+            f"{stage['delta_average'][-1]:+.3f}); the table's start is the retrieval of LWC "
+            "and r_eff's, after it."]
 
 
 if __name__ == "__main__":

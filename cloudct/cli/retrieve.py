@@ -48,7 +48,6 @@ from cloudct.physics.mie import DEFAULT_WAVELENGTH, mie_table
 from cloudct.retrieval.carving import carve, initial_medium
 from cloudct.retrieval.config import (
     AUTO,
-    OPTICS_TRUNCATION,
     RetrievalConfig,
     settings_for_optics,
 )
@@ -64,7 +63,7 @@ from cloudct.retrieval.config_file import (
 from cloudct.retrieval.loop import Retrieval
 from cloudct.retrieval.loss import BATCHES
 from cloudct.retrieval.microphysics import MicrophysicsRetrieval, retrieval_bands
-from cloudct.retrieval.microphysics_first_guess import brightness_reff, microphysical_first_guess
+from cloudct.retrieval.microphysics_first_guess import first_guess, stage_attrs
 from cloudct.retrieval.microphysics_report import (
     RESULT_VARIABLES,
     is_microphysical_result,
@@ -288,21 +287,26 @@ def _retrieve_microphysics(args: argparse.Namespace, settings: dict, output: Pat
     retrieval_bands(measurements)  # several bands, before any carving
     truth = load_medium(args.truth) if args.truth else None
     backend = chosen_backend(args)
+    attrs, mask = {}, None
     if args.init == "carve":
         red = band_measurements(measurements, DEFAULT_WAVELENGTH)
         grid = medium_from_options(args.medium, "mie")
         carved = initial_medium(carve(red, grid, backend=backend), grid)
-        table = mie_table(wavelength=DEFAULT_WAVELENGTH)
-        reff = brightness_reff(carved, measurements, table, phase_truncation=(
-            OPTICS_TRUNCATION["mie"] if config.phase_truncation is None
-            else config.phase_truncation), backend=backend)
-        print(f"first guess: the carved extinction as LWC at r_eff {reff:.3g} micron (the "
+        if config.extinction_share > 0.0:
+            print(f"retrieving the extinction at {DEFAULT_WAVELENGTH:g} micron first "
+                  f"({config.extinction_share:.0%} of the run) ...")
+        guess = first_guess(measurements, carved, config,
+                            table=mie_table(wavelength=DEFAULT_WAVELENGTH), truth=truth,
+                            backend=backend)
+        print(f"first guess: the {'retrieved' if guess.extinction_result else 'carved'} "
+              f"extinction as LWC at r_eff {guess.reff:.3g} micron (the "
               f"{max(retrieval_bands(measurements)):g} micron images' brightness)")
-        initial = microphysical_first_guess(carved, table, reff)
+        initial, mask, config, attrs = guess.medium, guess.mask, guess.config, stage_attrs(guess)
     else:
         initial = load_medium(args.init)
-    run = MicrophysicsRetrieval(measurements, initial, config, truth=truth, backend=backend)
-    result = run.run(progress=None)
+    run = MicrophysicsRetrieval(measurements, initial, config, mask=mask, truth=truth,
+                                backend=backend)
+    result = run.run(progress=None).assign_attrs(attrs)
     save_netcdf(result, output, overwrite=True)  # refused before the run if not --overwrite
     print(f"wrote {output} (lwc and reff, {run.state.iteration} iterations, "
           f"{run.state.elapsed:.0f} s)")

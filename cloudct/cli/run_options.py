@@ -51,6 +51,7 @@ OPTION_FIELDS = {dest: dest for dest in (
     "checkpoint_every", "transmittance", "iteration_seconds", "schedule", "significance",
     "plateau", "photon_growth", "photon_cap", "step_floor", "max_change",
     "phase_truncation", "image_method", "unknowns", "lwc_step", "reff_step",
+    "extinction_share", "hold_extinction",
 )} | {"fresh_gradient": "recycle_gradient",  # --fresh-gradient: recycle_gradient = false
       "prior": "priors"}
 OPTION_NAMES = {field: "--" + dest.replace("_", "-") for dest, field in OPTION_FIELDS.items()}
@@ -172,6 +173,14 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
     p.add_argument("--reff-step", type=float,
                    help="--unknowns lwc reff: the step in r_eff [micron per iteration] "
                         f"(default {c.reff_step})")
+    p.add_argument("--extinction-share", type=float,
+                   help="--unknowns lwc reff: the share of the run (its --time-limit, else "
+                        "its iterations) first spent retrieving the extinction in the shortest "
+                        f"band (default {c.extinction_share})")
+    p.add_argument("--hold-extinction", action=argparse.BooleanOptionalAction, default=None,
+                   help="--unknowns lwc reff: keep the first guess's extinction in the "
+                        "shortest band and retrieve r_eff alone, LWC following it (default: "
+                        "after an extinction stage, --extinction-share > 0)")
     p.add_argument("--trust-region", type=float,
                    help="lbfgsb: relative change of a voxel's extinction per window "
                         f"(default {c.trust_region})")

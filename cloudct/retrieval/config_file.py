@@ -120,6 +120,10 @@ RUN_KEYS = {k.name: k for k in (
     _run_key("lwc_step", float, "unknowns lwc reff: the step in LWC [g m-3 per iteration]"),
     _run_key("reff_step", float, "unknowns lwc reff: the step in r_eff [micron per "
              "iteration]"),
+    _run_key("extinction_share", float, "unknowns lwc reff: the share of the run first "
+             "spent retrieving the extinction in the shortest band (0: none)", 0.75),
+    _run_key("hold_extinction", bool, "unknowns lwc reff: keep the first guess's extinction "
+             "in the shortest band and retrieve r_eff alone (LWC follows it)"),
     _run_key("seed", int, "seed of the photons: the same seed repeats the same iterates"),
     _run_key("checkpoint_every", int, "iterations between checkpoints"),
     _run_key("time_limit", float, "seconds of wall time after which the run stops (unset: "

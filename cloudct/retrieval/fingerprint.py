@@ -42,7 +42,8 @@ def run_id(measurements: xr.Dataset, config: RetrievalConfig) -> str:
     if config.plateau == "step":
         ignored += ["plateau", "photon_growth", "photon_cap"]
     if not config.microphysical:
-        ignored += ["unknowns", "lwc_step", "reff_step"]
+        ignored += ["unknowns", "lwc_step", "reff_step", "extinction_share",
+                    "hold_extinction"]
     for name, before in (("step_floor", 0.0), ("max_change", None),
                          ("image_method", "forward")):
         if getattr(config, name) == before:

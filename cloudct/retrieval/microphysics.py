@@ -35,7 +35,12 @@ covers, in the mask, and 0 outside (clear cells: r_eff means nothing there, and 
 terms count only cells with droplets).
 
 The first guess (:mod:`cloudct.retrieval.microphysics_first_guess`) is the carved
-extinction as LWC at one r_eff fitted to the longest band's brightness.
+extinction, or the extinction retrieved from the shortest band for ``extinction_share`` of
+the run, as LWC at one r_eff fitted to the longest band's brightness. With
+``hold_extinction`` the shortest band's extinction beta = e(r_eff) LWC stays the first
+guess's: r_eff alone is stepped, along dL/dr_eff at fixed beta = dL/dr_eff + dL/dLWC dLWC /
+dr_eff with dLWC / dr_eff = -LWC e'(r_eff) / e(r_eff), LWC = beta / e(r_eff) follows, and
+the extinction's prior terms, with nothing to move, are left out.
 
 The paths see the Mie phase functions' forward peak cut at ``phase_truncation`` degrees
 (unset: as the initial medium records, else :data:`~cloudct.retrieval.config.
@@ -85,7 +90,11 @@ from cloudct.measurements import (
 )
 from cloudct.medium import is_microphysical, is_optical, validate_medium
 from cloudct.optics import GRID, PHASE_TRUNCATION, band_optics, to_optical
-from cloudct.physics.microphysics import extinction_lwc_derivative
+from cloudct.physics.microphysics import (
+    cloud_extinction,
+    extinction_lwc_derivative,
+    extinction_reff_derivative,
+)
 from cloudct.physics.mie import DEFAULT_VEFF, mie_table
 from cloudct.retrieval.config import OPTICS_TRUNCATION, RetrievalConfig
 from cloudct.retrieval.config_file import config_to_toml
@@ -290,8 +299,12 @@ class MicrophysicsRetrieval:
         self.averages: dict[str, tuple[np.ndarray | None, float]] = {}
         self.noise_reference: dict[str, float] = {}
         # e_0: the extinction per unit LWC of the shortest band at FIRST_GUESS_REFF
+        self.shortest_table = self.tables[int(np.argmin(self.wavelengths))]
         self.reference_extinction = float(extinction_lwc_derivative(
-            0.0, FIRST_GUESS_REFF, self.tables[int(np.argmin(self.wavelengths))]))
+            0.0, FIRST_GUESS_REFF, self.shortest_table))
+        # hold_extinction: the shortest band's cloud extinction that LWC follows
+        self.held_extinction = (cloud_extinction(self.lwc, self.reff, self.shortest_table)
+                                if config.hold_extinction else None)
         self.band_losses: list[np.ndarray] = []
 
     def _bounded(self, reff: np.ndarray) -> np.ndarray:
@@ -330,6 +343,8 @@ class MicrophysicsRetrieval:
         value, gradient = 0.0, {"lwc": 0.0, "reff": 0.0}
         for p in self.config.priors:
             name = "reff" if p.term in REFF_PRIORS else "lwc"
+            if name == "lwc" and self.held_extinction is not None:
+                continue  # the extinction is held: its terms have nothing to move
             field = self.reff if name == "reff" else self.reference_extinction * self.lwc
             phi, d_phi = p.value_and_gradient(field, self._prior_grid)
             scale = p.weight * self.empty_loss * (
@@ -381,14 +396,23 @@ class MicrophysicsRetrieval:
             self.noise_reference.setdefault(name, rms)
         prior, prior_gradient = self.prior(multiples)
         gradients = {name: ev.gradient[name] + prior_gradient[name] for name in ("lwc", "reff")}
-        stepped = {}
-        for name, now in (("lwc", self.lwc), ("reff", self.reff)):
+        fields = (("lwc", self.lwc), ("reff", self.reff))
+        if self.held_extinction is not None:  # dL/dr at fixed beta: + dL/dLWC dLWC/dr
+            gradients["reff"] = gradients["reff"] - gradients["lwc"] * extinction_reff_derivative(
+                self.lwc, self.reff, self.shortest_table) / extinction_lwc_derivative(
+                self.lwc, self.reff, self.shortest_table)
+            fields = fields[1:]
+        stepped = {"lwc": self.lwc}
+        for name, now in fields:
             gradient = smoothed_gradient(block_mean(gradients[name], self.mask,
                                                     cfg.voxel_blocks[0]),
                                          self.mask, cfg.gradient_smoothing[0])
             self.optimizers[name].step = getattr(cfg, f"{name}_step") * s.step_scale
             stepped[name] = self.optimizers[name].update(now, gradient, self.mask)
         self.lwc, self.reff = stepped["lwc"], self._bounded(stepped["reff"])
+        if self.held_extinction is not None:
+            self.lwc = np.where(self.mask, self.held_extinction / extinction_lwc_derivative(
+                self.lwc, self.reff, self.shortest_table), 0.0)
         if cfg.averaging != "none":
             for name, now in (("lwc", self.lwc), ("reff", self.reff)):
                 self.averages[name] = add_to_average(*self.averages.get(name, (None, 0.0)),

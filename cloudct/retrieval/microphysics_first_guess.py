@@ -11,12 +11,21 @@ hold more water and absorb more in the shortwave infrared); without a fit,
 :data:`FIRST_GUESS_REFF` = 10 micron. A constant leaves the images to tell the r_eff
 profile (the r_eff gradient can move it either way) and does not presume a cloud base that
 the carving knows only to a voxel or two.
+
+With ``extinction_share`` > 0 (:func:`first_guess`) the extinction comes not from the
+carving but from a retrieval of the extinction in the shortest band
+(:class:`cloudct.retrieval.loop.Retrieval` from the carved start, with the defaults of its
+optics) that takes that share of the run: the images of the visible band alone tell the
+extinction, and its retrieval's estimators and schedule are the product's best; r_eff and
+LWC then start from its iterate average. With ``hold_extinction`` the retrieval of LWC and
+r_eff keeps that extinction and moves r_eff alone (:mod:`cloudct.retrieval.microphysics`).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass, replace
 
 import numpy as np
 import xarray as xr
@@ -25,11 +34,12 @@ from cloudct.mc.render import render
 from cloudct.mc.scene import Scene
 from cloudct.measurements import BAND_TOLERANCE, band_measurements, band_wavelengths
 from cloudct.medium import is_optical, microphysical_medium
-from cloudct.optics import GRID, PHASE_TRUNCATION, to_optical
+from cloudct.optics import GRID, PHASE_TRUNCATION, optics_name, phase_truncation, to_optical
 from cloudct.physics.microphysics import extinction_lwc_derivative
 from cloudct.physics.mie import mie_table
 from cloudct.retrieval.carving import FIT_PHOTONS
-from cloudct.retrieval.config import OPTICS_TRUNCATION
+from cloudct.retrieval.config import OPTICS_TRUNCATION, RetrievalConfig, settings_for_optics
+from cloudct.retrieval.loop import Retrieval
 
 LOGGER = logging.getLogger(__name__)
 
@@ -132,3 +142,109 @@ def brightness_reff(
         else:
             hi = mid
     return math.exp(0.5 * (lo + hi))
+
+
+@dataclass
+class FirstGuess:
+    """The start of a retrieval of LWC and r_eff (:func:`first_guess`): the microphysical
+    ``medium``, the cloud ``mask`` (x, y, z), the first guess's constant ``reff``
+    [micron], the ``config`` of the retrieval of LWC and r_eff (its time limit or
+    iterations less the extinction stage's) and the extinction stage's result (None
+    without one)."""
+
+    medium: xr.Dataset
+    mask: np.ndarray
+    reff: float
+    config: RetrievalConfig
+    extinction_result: xr.Dataset | None = None
+
+
+def extinction_stage(measurements: xr.Dataset, carved: xr.Dataset, config: RetrievalConfig,
+                     *, truth: xr.Dataset | None = None, backend: str = "cpu",
+                     progress: bool | None = None) -> xr.Dataset:
+    """The result of the retrieval of the extinction in the shortest band of
+    ``measurements`` from the optical medium ``carved`` (:class:`~cloudct.retrieval.loop.
+    Retrieval` with the defaults of its optics) for ``config.extinction_share`` of
+    ``config.time_limit`` (without one: of ``config.iterations``), with ``config``'s seed,
+    phase truncation and ``iteration_seconds`` (its photons fitted to them); ``truth``
+    (microphysical, optional) gives its log's epsilon of the extinction."""
+    shortest = float(band_wavelengths(measurements).min())
+    settings = {"seed": config.seed, "phase_truncation": config.phase_truncation,
+                "iteration_seconds": config.iteration_seconds, "iterations": config.iterations}
+    if config.time_limit is None:
+        settings["iterations"] = _stage_iterations(config)
+    else:
+        settings["time_limit"] = config.extinction_share * config.time_limit
+    settings = settings_for_optics({k: v for k, v in settings.items() if v is not None},
+                                   optics_name(carved), phase_truncation(carved))
+    veff = float(truth["veff"].max()) if truth is not None and "veff" in truth else None
+    optical_truth = None if truth is None else to_optical(
+        truth, mie_table(wavelength=shortest, **({} if veff is None else {"veff": veff})),
+        optics="mie")
+    run = Retrieval(band_measurements(measurements, shortest), carved,
+                    RetrievalConfig(**settings), truth=optical_truth, backend=backend)
+    return run.run(progress=progress)
+
+
+def first_guess(measurements: xr.Dataset, carved: xr.Dataset, config: RetrievalConfig, *,
+                table: xr.Dataset, band_table: xr.Dataset | None = None,
+                truth: xr.Dataset | None = None, backend: str = "cpu",
+                progress: bool | None = None) -> FirstGuess:
+    """The start of a retrieval of LWC and r_eff from the optical medium ``carved`` (the
+    carved hull's extinction in the band of the Mie ``table``, the shortest band): with
+    ``config.extinction_share`` > 0 the extinction of :func:`extinction_stage` (its iterate
+    average where it keeps one), else the carved one, made LWC at :func:`brightness_reff`
+    (module documentation; ``band_table``: the longest band's table, as there); the mask is
+    the carved hull, and the returned config has the extinction stage's time (or
+    iterations) taken off and ``hold_extinction`` unset made true after an extinction
+    stage (false without one)."""
+    if config.extinction_share == 0.0 or (config.time_limit is None
+                                          and _stage_iterations(config) == 0):
+        reff = brightness_reff(carved, measurements, table, band_table=band_table,
+                               backend=backend, phase_truncation=_truncation(config))
+        medium = microphysical_first_guess(carved, table, reff)
+        return FirstGuess(medium, medium["lwc"].transpose(*GRID).values > 0.0, reff,
+                          replace(config, hold_extinction=bool(config.hold_extinction)))
+    result = extinction_stage(measurements, carved, config, truth=truth, backend=backend,
+                              progress=progress)
+    extinction = result["cloud_extinction_average"] if "cloud_extinction_average" in result \
+        else result["cloud_extinction"]
+    start = carved.copy()
+    start["cloud_extinction"] = carved["cloud_extinction"].copy(
+        data=extinction.transpose(*carved["cloud_extinction"].dims).values)
+    reff = brightness_reff(start, measurements, table, band_table=band_table,
+                           backend=backend, phase_truncation=_truncation(config))
+    held = config.hold_extinction is not False
+    if config.time_limit is None:
+        rest = replace(config, hold_extinction=held,
+                       iterations=config.iterations - int(result.attrs["iterations_done"]))
+    else:
+        rest = replace(config, hold_extinction=held, time_limit=max(
+            config.time_limit - float(result.attrs["elapsed_s"]), 0.0))
+    return FirstGuess(microphysical_first_guess(start, table, reff),
+                      result["cloud_mask"].transpose(*GRID).values.astype(bool), reff, rest,
+                      result)
+
+
+def stage_attrs(guess: FirstGuess) -> dict:
+    """The first guess's record for a result's attributes: its r_eff and the extinction
+    stage's iterations and seconds (0 without one)."""
+    result = guess.extinction_result
+    return {"first_guess_reff": guess.reff, "first_guess_reff_units": "micron",
+            "extinction_stage_iterations": 0 if result is None
+            else int(result.attrs["iterations_done"]),
+            "extinction_stage_seconds": 0.0 if result is None
+            else float(result.attrs["elapsed_s"])}
+
+
+def _stage_iterations(config: RetrievalConfig) -> int:
+    """The extinction stage's iterations in a run without a time limit: its share of the
+    run's, rounded down (at least one is left to LWC and r_eff)."""
+    return int(config.extinction_share * config.iterations)
+
+
+def _truncation(config: RetrievalConfig) -> float:
+    """The phase truncation [degrees] the retrieval's paths see (config's, else the Mie
+    default)."""
+    return (OPTICS_TRUNCATION["mie"] if config.phase_truncation is None
+            else config.phase_truncation)
