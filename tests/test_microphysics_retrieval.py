@@ -258,6 +258,11 @@ def test_holding_the_extinction_moves_reff_alone_and_lwc_along_it(monkeypatch, t
     np.testing.assert_allclose(cloud_extinction(result["lwc"].values, result["reff"].values,
                                                 tables[0])[CLOUD], beta, rtol=1e-12)
     assert np.all(result["lwc"].values[CLOUD] < 0.2)  # less water (dL/dLWC > 0): smaller r_eff
+    # an extinction stage that took the whole time limit leaves no iteration: the start
+    none = MicrophysicsRetrieval(measurements, start, config(time_limit=0.0),
+                                 mie_tables=tables).run(progress=False)
+    assert none.sizes["iteration"] == 0 and none["log_band_loss"].shape == (0, 2)
+    np.testing.assert_array_equal(none["lwc"].values, start["lwc"].values)
 
 
 def test_the_extinction_stage_starts_lwc_and_reff(tables, truth, measurements):

@@ -467,7 +467,7 @@ class MicrophysicsRetrieval:
             ds[f"log_{key}"] = ("iteration", np.array(s.log[key], dtype=float),
                                 {"units": units, "long_name": name})
         ds["log_band_loss"] = (("iteration", BAND),
-                               np.reshape(self.band_losses, (s.iteration, -1)),
+                               np.reshape(self.band_losses, (s.iteration, len(self.wavelengths))),
                                {"units": "1", "long_name": "each band's loss, Eq. (41)"})
         ds["cloud_mask"] = (GRID, self.mask.astype(np.int8),
                             {"units": "1", "long_name": "carved cloud hull (1 = inside)"})
