@@ -284,6 +284,11 @@ def test_the_extinction_stage_starts_lwc_and_reff(tables, truth, measurements):
     assert np.all(reff[extinction > 0] == guess.reff) and tables[0]["reff"][0] <= guess.reff
     np.testing.assert_array_equal(guess.mask, stage["cloud_mask"].values.astype(bool))
     assert stage_attrs(guess)["extinction_stage_iterations"] == 2
+    # a share of 1: the extinction takes every iteration, none is left to LWC and r_eff
+    whole = first_guess(measurements, carved,
+                        config(iterations=2, extinction_share=1.0, iteration_seconds=0.2),
+                        table=tables[0], band_table=tables[1])
+    assert whole.extinction_result.sizes["iteration"] == 2 and whole.config.iterations == 0
 
 
 def test_the_steps_keep_the_bounds(tables, truth, measurements):

@@ -176,7 +176,8 @@ def add_run_options(p: argparse.ArgumentParser, iterations: int | None = None,
     p.add_argument("--extinction-share", type=float,
                    help="--unknowns lwc reff: the share of the run (its --time-limit, else "
                         "its iterations) first spent retrieving the extinction in the shortest "
-                        f"band (default {c.extinction_share})")
+                        f"band; 1: all of it, r_eff one fitted constant (default "
+                        f"{c.extinction_share})")
     p.add_argument("--hold-extinction", action=argparse.BooleanOptionalAction, default=None,
                    help="--unknowns lwc reff: keep the first guess's extinction in the "
                         "shortest band and retrieve r_eff alone, LWC following it (default: "

@@ -159,7 +159,8 @@ class RetrievalConfig:
     reff_step: float = 0.5  # unknowns lwc reff: the step in r_eff [micron per iteration]
     extinction_share: float = 0.0  # unknowns lwc reff: the share of the run (its time limit,
     # else its iterations) first spent retrieving the extinction in the shortest band
-    # (cloudct.retrieval.microphysics_first_guess.extinction_stage; 0: none)
+    # (cloudct.retrieval.microphysics_first_guess.extinction_stage; 0: none; 1: all of it,
+    # r_eff the brightness-fitted constant)
     hold_extinction: bool | None = None  # unknowns lwc reff: keep the first guess's
     # extinction in the shortest band and retrieve r_eff alone, LWC = beta / e(r_eff)
     # following it (None: after an extinction stage, cloudct.retrieval.microphysics_first_
@@ -323,8 +324,8 @@ class RetrievalConfig:
         if not (self.lwc_step > 0.0 and self.reff_step > 0.0):
             raise ValueError(f"lwc_step and reff_step must be > 0, got {self.lwc_step} and "
                              f"{self.reff_step}")
-        if not 0.0 <= self.extinction_share < 1.0:
-            raise ValueError(f"extinction_share must be in [0, 1), got {self.extinction_share}")
+        if not 0.0 <= self.extinction_share <= 1.0:
+            raise ValueError(f"extinction_share must be in [0, 1], got {self.extinction_share}")
         refusals = (
             (self.recycling != "none", f"recycling {self.recycling!r}: path recycling is not "
              f"supported for the {what} yet; leave recycling at 'none'"),

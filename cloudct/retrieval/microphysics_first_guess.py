@@ -239,7 +239,7 @@ def stage_attrs(guess: FirstGuess) -> dict:
 
 def _stage_iterations(config: RetrievalConfig) -> int:
     """The extinction stage's iterations in a run without a time limit: its share of the
-    run's, rounded down (at least one is left to LWC and r_eff)."""
+    run's, rounded down (below a share of 1, at least one is left to LWC and r_eff)."""
     return int(config.extinction_share * config.iterations)
 
 
