@@ -208,6 +208,17 @@ def at_marks(log: dict, marks_s: list[float], offset: float = 0.0) -> dict:
     return out
 
 
+def final_row(log: dict, initial: dict, offset: float) -> dict:
+    """The errors and loss of the last iteration, ``offset`` seconds of extinction stage
+    added to its time; without an iteration (``extinction_share`` 1) the start's errors,
+    the iterate average's the same."""
+    if not log["seconds"]:
+        return {"iteration": 0, "seconds": offset, "loss": float("nan"), **initial,
+                **{f"{k}_average": v for k, v in initial.items()}}
+    return {"iteration": len(log["seconds"]), "seconds": log["seconds"][-1] + offset,
+            "loss": log["loss"][-1], **{name: log[name][-1] for name in ERRORS}}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", choices=SCENES, default="single_cloud")
@@ -313,9 +324,7 @@ def main() -> None:
         decisions=run.state.decisions,
         first_iteration_seconds=float(seconds[0]) if seconds.size else None,
         median_iteration_seconds=float(np.median(seconds[1:])) if seconds.size > 1 else None,
-        final={"iteration": run.state.iteration,
-               "seconds": log["seconds"][-1] + carving["extinction_stage_seconds"],
-               "loss": log["loss"][-1], **{name: log[name][-1] for name in ERRORS}},
+        final=final_row(log, result["initial"], carving["extinction_stage_seconds"]),
         marks=at_marks(log, [60.0 * m for m in args.marks],
                        carving["extinction_stage_seconds"]),
         load_average_end=os.getloadavg(),
@@ -344,7 +353,7 @@ def marks_markdown(result: dict) -> str:
                             "near: rel. error", "loss"], rows)
     bands = ", ".join(f"{w:g}" for w in result["bands"])
     lines = [f"{result['scene']}, bands {bands} micron: {result['iterations']} iterations "
-             f"(first {result['first_iteration_seconds']:.1f} s, then median "
+             f"(first {result['first_iteration_seconds'] or float('nan'):.1f} s, then median "
              f"{result['median_iteration_seconds'] or float('nan'):.1f} s each); carved hull "
              f"{result['carving']['hull_voxels']} voxels, first guess r_eff "
              f"{result['carving']['first_guess_reff']:.2f} micron, true cloud "
