@@ -198,32 +198,28 @@ def first_guess(measurements: xr.Dataset, carved: xr.Dataset, config: RetrievalC
     the carved hull, and the returned config has the extinction stage's time (or
     iterations) taken off and ``hold_extinction`` unset made true after an extinction
     stage (false without one)."""
-    if config.extinction_share == 0.0 or (config.time_limit is None
-                                          and _stage_iterations(config) == 0):
-        reff = brightness_reff(carved, measurements, table, band_table=band_table,
-                               backend=backend, phase_truncation=_truncation(config))
-        medium = microphysical_first_guess(carved, table, reff)
-        return FirstGuess(medium, medium["lwc"].transpose(*GRID).values > 0.0, reff,
-                          replace(config, hold_extinction=bool(config.hold_extinction)))
-    result = extinction_stage(measurements, carved, config, truth=truth, backend=backend,
-                              progress=progress)
-    extinction = result["cloud_extinction_average"] if "cloud_extinction_average" in result \
-        else result["cloud_extinction"]
-    start = carved.copy()
-    start["cloud_extinction"] = carved["cloud_extinction"].copy(
-        data=extinction.transpose(*carved["cloud_extinction"].dims).values)
+    rest, result, mask = replace(config, hold_extinction=bool(config.hold_extinction)), None, None
+    start = carved
+    if config.extinction_share > 0.0 and (config.time_limit is not None
+                                          or _stage_iterations(config) > 0):
+        result = extinction_stage(measurements, carved, config, truth=truth, backend=backend,
+                                  progress=progress)
+        extinction = result.get("cloud_extinction_average", result["cloud_extinction"])
+        start = carved.copy()
+        start["cloud_extinction"] = carved["cloud_extinction"].copy(
+            data=extinction.transpose(*carved["cloud_extinction"].dims).values)
+        mask = result["cloud_mask"].transpose(*GRID).values.astype(bool)
+        rest = replace(config, hold_extinction=config.hold_extinction is not False)
+        if config.time_limit is None:
+            rest.iterations -= int(result.attrs["iterations_done"])
+        else:
+            rest.time_limit = max(config.time_limit - float(result.attrs["elapsed_s"]), 0.0)
     reff = brightness_reff(start, measurements, table, band_table=band_table,
                            backend=backend, phase_truncation=_truncation(config))
-    held = config.hold_extinction is not False
-    if config.time_limit is None:
-        rest = replace(config, hold_extinction=held,
-                       iterations=config.iterations - int(result.attrs["iterations_done"]))
-    else:
-        rest = replace(config, hold_extinction=held, time_limit=max(
-            config.time_limit - float(result.attrs["elapsed_s"]), 0.0))
-    return FirstGuess(microphysical_first_guess(start, table, reff),
-                      result["cloud_mask"].transpose(*GRID).values.astype(bool), reff, rest,
-                      result)
+    medium = microphysical_first_guess(start, table, reff)
+    if mask is None:  # the carved start: where it holds water
+        mask = medium["lwc"].transpose(*GRID).values > 0.0
+    return FirstGuess(medium, mask, reff, rest, result)
 
 
 def stage_attrs(guess: FirstGuess) -> dict:
