@@ -8,7 +8,9 @@
   iterations and only media, residuals and results come back.
 - A worker killed in the middle of a call (images, camera-side gradients, a recycled
   iteration, whose lost part of the paths is recorded again): the task is re-run elsewhere
-  and the result is still bitwise the single-process one; a task that keeps killing workers
+  and the result is still bitwise the single-process one; a worker that dies with the last
+  copy of a call's scattered inputs: they are scattered again and the tasks submitted once
+  more, bitwise the same; a task that keeps killing workers
   makes the call raise DistributedError; the reduction refuses results that do not cover
   every submitted batch exactly once.
 """
@@ -218,9 +220,10 @@ def test_partial_results_are_refused():
         assemble([part, later._replace(values=np.ones((1, 3)))], 4)  # a short task
 
 
-def _kill_once(marker: str):
+def _kill_once(marker: str, after_first: bool = True):
     def hook(kind, start):
-        if start > 0:  # not the first task: the call is under way elsewhere
+        # not the first task (unless asked): the call is under way elsewhere
+        if start > 0 or not after_first:
             try:
                 os.close(os.open(marker, os.O_CREAT | os.O_EXCL))
             except FileExistsError:
@@ -326,6 +329,74 @@ def test_a_worker_killed_in_a_gradient_or_a_recycled_iteration_is_replaced_bitwi
             own_client.run(_set_hook, None)
         assert same(out[0], ref[0]) and same(out[1], ref[1])
     assert os.path.exists(marker)  # a worker did die during the call
+
+
+def _keep_one_copy(key, dask_scheduler=None) -> str:
+    """Drop every copy of ``key`` but the one on the lowest worker address, as Dask's
+    active memory manager drops the copies no waiting task needs; returns that address."""
+    ts = dask_scheduler.tasks[key]
+    keep = min(ws.address for ws in ts.who_has)
+    for ws in list(ts.who_has):
+        if ws.address != keep:
+            dask_scheduler.request_remove_replicas(ws.address, [key],
+                                                   stimulus_id=f"cloudct-test-{key}")
+    return keep
+
+
+class _OneCopy(DaskExecutor):
+    """Keeps one copy of what it scatters, on the lowest worker address."""
+
+    def share(self, obj, *, cache=False):
+        future, sent = super().share(obj, cache=cache)
+        self.client.run_on_scheduler(_keep_one_copy, future.key)
+        return future, sent
+
+
+@pytest.mark.parametrize("call", ["drt", "replay"])
+def test_a_worker_dying_with_the_last_copy_of_a_scattered_input_is_survived_bitwise(
+        own_client, tmp_path, call):
+    """The worker holding the only copy of a call's scattered inputs (the kernel inputs of
+    a DRT gradient; the media of a recycled iteration, and its part of the stored paths)
+    dies in the call: the scheduler forgets the tasks that need them (scattered data has no
+    lineage); the inputs are scattered again from the client and the tasks submitted once
+    more: bitwise the single-process result."""
+    medium, scene = gradient_medium(), gradient_scene()
+    marker = str(tmp_path / "killed")
+    holder = min(own_client.scheduler_info(n_workers=-1)["workers"])
+    kill = _kill_once(marker, after_first=False)
+    if call == "replay":
+        w = weights_for(scene)
+        local = Recycler(scene, photons=3_200, policy=FixedPeriod(2), seed=3)
+        remote = DistributedRecycler(scene, client=_OneCopy(own_client), photons=3_200,
+                                     policy=FixedPeriod(2), seed=3)
+
+        def evaluate(recycler, t):
+            return recycler.evaluate(scaled(medium, 1.0 + 0.03 * t),
+                                     residual=lambda images: w * images.radiance.values)
+
+        for recycler in (local, remote):
+            evaluate(recycler, 0)  # records the paths
+        ref = evaluate(local, 1)
+        own_client.run(_set_hook, lambda kind, start: kind in ("log_weights", "replay")
+                       and kill(kind, start), workers=[holder])
+        try:
+            out = evaluate(remote, 1)
+        finally:
+            own_client.run(_set_hook, None)
+        assert not out.info["resampled"]
+        assert same(out.images.radiance.values, ref.images.radiance.values)
+        assert same(out.gradient, ref.gradient)
+    else:
+        run = dict(samples_per_pixel=64, seed=4, batches=8)
+        ref = drt_gradient(medium, scene, pixel_weights(), **run)
+        own_client.run(_set_hook, kill, workers=[holder])
+        try:
+            out = drt_gradient(medium, scene, pixel_weights(), **run,
+                               executor=_OneCopy(own_client, batches_per_task=2))
+        finally:
+            own_client.run(_set_hook, None)
+        assert same(out[0], ref[0]) and same(out[1], ref[1])
+    assert os.path.exists(marker)  # the holder did die during the call
 
 
 class _KillAlways(WorkerPlugin):

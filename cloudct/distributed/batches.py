@@ -40,7 +40,11 @@ call reports the bytes in ``info`` / ``attrs`` (``bytes_to_workers``,
 
 Failures: a task whose worker dies is re-run elsewhere by the scheduler (Dask's
 ``distributed.scheduler.allowed-failures``); a task that keeps killing workers, or any other
-task error, makes the call raise (:class:`DistributedError` for dead workers). A result is
+task error, makes the call raise (:class:`DistributedError` for dead workers). A worker
+that dies with the last copy of a call's scattered inputs (Dask's memory manager keeps one
+copy of data no task waits for) makes the scheduler forget the call's tasks: the client
+scatters the inputs again and submits the tasks once more
+(:meth:`~cloudct.distributed.executor.DaskExecutor.gather_shared`). A result is
 only reduced when every submitted batch came back exactly once (checked), never a partial
 sum.
 
@@ -246,25 +250,35 @@ def _backends(parts: Sequence[BatchPart]) -> str:
 
 
 def run_tasks(
-    ex: DaskExecutor, task, args: tuple, ranges: list[tuple[int, int]], *, total: int,
-    axis: int, sent: int, started: float, work: int, unit: str, desc: str,
-    progress: bool | None,
+    ex: DaskExecutor, task, inputs: Callable[[], tuple[tuple, int]],
+    ranges: list[tuple[int, int]], *, total: int, axis: int, started: float, work: int,
+    unit: str, desc: str, progress: bool | None,
 ) -> tuple[np.ndarray, list[BatchPart], CallStats]:
-    """Submit ``task(*args, start, count)`` for each of ``ranges``, gather the parts, check
-    that they cover items 0 .. total - 1 exactly once and concatenate their values along
-    ``axis`` in order (:func:`assemble`). ``work``: progress units per item (photons per
-    batch, or samples per view); ``sent``: bytes already scattered for the call, which
-    started at ``started`` (``time.perf_counter()``). Returns the values, the parts in
-    order and the call's bookkeeping (also appended to ``ex.calls``)."""
-    tag = uuid.uuid4().hex[:8]
-    futures = [ex.submit(task, *args, s, n, key=f"cloudct-{desc.replace(' ', '-')}-{tag}-{s}")
-               for s, n in ranges]
-    counts = {f.key: n for f, (_, n) in zip(futures, ranges, strict=True)}
-    parts = ex.gather(futures, work * total, lambda f: counts[f.key] * work, progress,
-                      unit=unit, desc=desc)
+    """Submit ``task(*shared, start, count)`` for each of ``ranges``, where ``inputs()``
+    scatters the shared arguments and returns ``(shared, bytes sent)`` (called again should
+    a dying worker take them with it, :meth:`DaskExecutor.gather_shared`), gather the
+    parts, check that they cover items 0 .. total - 1 exactly once and concatenate their
+    values along ``axis`` in order (:func:`assemble`). ``work``: progress units per item
+    (photons per batch, or samples per view); the call started at ``started``
+    (``time.perf_counter()``). Returns the values, the parts in order and the call's
+    bookkeeping (also appended to ``ex.calls``)."""
+    counts = {}
+
+    def submit(*shared) -> list:
+        tag = uuid.uuid4().hex[:8]
+        futures = [ex.submit(task, *shared, s, n,
+                             key=f"cloudct-{desc.replace(' ', '-')}-{tag}-{s}")
+                   for s, n in ranges]
+        counts.update({f.key: n for f, (_, n) in zip(futures, ranges, strict=True)})
+        return futures
+
+    parts, sent = ex.gather_shared(
+        inputs, submit, progress_total=work * total,
+        progress_of=lambda f: counts[f.key] * work, progress=progress, unit=unit, desc=desc,
+    )
     values, parts = assemble(parts, total, axis=axis)
     ex.last_parts = [p._replace(values=None) for p in parts]
-    stats = CallStats(ex.workers, len(futures), sent, sum(nbytes(p) for p in parts),
+    stats = CallStats(ex.workers, len(ranges), sent, sum(nbytes(p) for p in parts),
                       _backends(parts), time.perf_counter() - started)
     ex.calls.append(stats)
     return values, parts, stats
@@ -289,24 +303,25 @@ def distributed_batch_sums(
     they hold arrays (a residual, an alias table)."""
     started = time.perf_counter()
     record = BATCH_KERNELS[kernel]
-    k_future, sent = ex.share(k, cache=True)
-    args_future, more = ex.share(args) if _holds_arrays(args) else (args, 0)
-    task_args = (kernel, k_future, sampling, per_batch, args_future)
+
+    def inputs() -> tuple[tuple, int]:
+        k_future, sent = ex.share(k, cache=True)
+        args_future, more = ex.share(args) if _holds_arrays(args) else (args, 0)
+        return (kernel, k_future, sampling, per_batch, args_future), sent + more
+
     batches = sampling.batches
     if record.split(args) == BY_VIEWS:
         nview = k.cams.position.shape[0]
         per = max(1, math.ceil(nview / (ex.tasks_per_worker * ex.workers)))
         ranges = [(s, min(per, nview - s)) for s in range(0, nview, per)]
         values, parts, stats = run_tasks(
-            ex, batch_task, task_args, ranges, total=nview, axis=1, sent=sent + more,
-            started=started, work=per_batch * batches, unit=record.unit, desc=desc,
-            progress=progress,
+            ex, batch_task, inputs, ranges, total=nview, axis=1, started=started,
+            work=per_batch * batches, unit=record.unit, desc=desc, progress=progress,
         )
         return values, np.sum([p.events for p in parts], axis=0), stats
     values, parts, stats = run_tasks(
-        ex, batch_task, task_args, ex.ranges(batches), total=batches, axis=0,
-        sent=sent + more, started=started, work=per_batch, unit=record.unit, desc=desc,
-        progress=progress,
+        ex, batch_task, inputs, ex.ranges(batches), total=batches, axis=0, started=started,
+        work=per_batch, unit=record.unit, desc=desc, progress=progress,
     )
     return values, np.concatenate([p.events for p in parts]), stats
 

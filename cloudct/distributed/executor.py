@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import weakref
 from collections import OrderedDict
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -160,6 +161,27 @@ class DaskExecutor:
         finally:
             self.client.cancel([f for f in futures if not f.done()])
 
+    def gather_shared(self, inputs: Callable[[], tuple[tuple, int]],
+                      submit: Callable[..., list], **gather_kwargs) -> tuple[list, int]:
+        """Results of the tasks ``submit(*shared)`` submits (in its order, as
+        :meth:`gather` with ``gather_kwargs``), where ``inputs()`` scatters what they share
+        and returns ``(shared, bytes sent)``; returns the results and the bytes sent.
+
+        Scattered data has no lineage, and Dask's active memory manager drops the copies of
+        it no waiting task needs: a worker that dies can take the last copy with it, and the
+        scheduler then forgets the tasks that need it. Should a call end so, with one of its
+        shared futures (nested tuples searched) lost, ``inputs()`` is called again (it
+        scatters anew what was lost) and the tasks are submitted once more; they are seeded,
+        so the result is the same."""
+        shared, sent = inputs()
+        try:
+            return self.gather(submit(*shared), **gather_kwargs), sent
+        except DistributedError:
+            if not any(future.status != "finished" for future in _futures(shared)):
+                raise
+        shared, more = inputs()
+        return self.gather(submit(*shared), **gather_kwargs), sent + more
+
     def close(self) -> None:
         """Release scattered data (the client stays open)."""
         self._cache.clear()
@@ -178,6 +200,13 @@ class DaskExecutor:
         )
         info = {"wall_time": stats.wall_time, "backend": stats.backend, **stats_info(stats)}
         return values, events, info
+
+
+def _futures(obj: Any) -> list:
+    """The Dask futures in ``obj`` (nested tuples)."""
+    if isinstance(obj, tuple):
+        return [f for item in obj for f in _futures(item)]
+    return [obj] if isinstance(obj, _import_distributed().Future) else []
 
 
 def _numba_threads() -> int:

@@ -232,37 +232,36 @@ class DistributedPathStore:
 
     # -- operations -------------------------------------------------------------------------
 
-    def _run(self, func, *args, desc: str) -> tuple[list, int, int]:
-        """The results of ``func`` on each part (where it is held), the bytes they moved
-        back, and the bytes sent to record lost parts again."""
+    def _run(self, func, share: Callable[[], tuple[tuple, int]], *,
+             desc: str) -> tuple[list, int, int]:
+        """The results of ``func(part, *shared)`` on each part (where it is held), where
+        ``share()`` scatters the shared arguments (``(shared, bytes sent)``); the bytes
+        they moved back, and the bytes sent (the shared arguments, and the recording of
+        lost parts)."""
         ex = self.executor
 
-        def submitted() -> list:
+        def inputs() -> tuple[tuple, int]:
+            # parts lost with a worker, together with the medium or scene they were
+            # recorded from, are recorded again from those kept here (the same paths); the
+            # shared arguments lost with it are scattered again
+            sent = self._record_parts() if self._lost() else 0
+            shared, more = share()
+            return (tuple(f for _, _, f in self.parts), *shared), sent + more
+
+        def submit(parts: tuple, *shared) -> list:
             tag = uuid.uuid4().hex[:8]
             # run each part's task where the part is held (a loose restriction: if its
             # holder is gone, the part is recomputed and the task runs elsewhere)
             try:
-                holders = ex.client.who_has([f for _, _, f in self.parts])
+                holders = ex.client.who_has(list(parts))
             except Exception:  # a part lost meanwhile: placement is a hint only
                 holders = {}
-            return [ex.submit(func, f, *args, key=f"cloudct-{desc}-{tag}-{s}",
+            return [ex.submit(func, f, *shared, key=f"cloudct-{desc}-{tag}-{s}",
                               **({"workers": list(holders[f.key]), "allow_other_workers": True}
                                  if holders.get(f.key) else {}))
-                    for s, _, f in self.parts]
+                    for (s, _, _), f in zip(self.parts, parts, strict=True)]
 
-        def lost() -> bool:
-            return any(f.status != "finished" for _, _, f in self.parts)
-
-        # parts lost with a worker, together with the medium or scene they were recorded
-        # from, are recorded again from those kept here (the same paths), once
-        sent = self._record_parts() if lost() else 0
-        try:
-            results = ex.gather(submitted())
-        except DistributedError:
-            if not lost():
-                raise
-            sent += self._record_parts()
-            results = ex.gather(submitted())
+        results, sent = ex.gather_shared(inputs, submit)
         if len(results) != len(self.parts):
             raise DistributedError("results of a recycled evaluation are missing")
         covered = [(s, n) for s, n, _ in self.parts]
@@ -275,14 +274,20 @@ class DistributedPathStore:
             raise DistributedError(f"path store parts cover {expected} of {self.batches} batches")
         return results, sum(nbytes(r) for r in results), sent
 
+    def _lost(self) -> bool:
+        """Whether a part is no longer held by a worker."""
+        return any(f.status != "finished" for _, _, f in self.parts)
+
     def log_weights(self, medium: xr.Dataset) -> tuple[np.ndarray, dict]:
         """The per-batch :func:`~cloudct.recycling.replay.weight_summary` of all paths'
         correction factors (batch order) and the bytes moved."""
         check_same_grid(self, cell_edges(medium))
-        medium_future, sent = self.executor.share(medium, cache=True)
-        results, received, more = self._run(part_log_weights, medium_future,
-                                            desc="log-weights")
-        sent += more
+
+        def share() -> tuple[tuple, int]:
+            medium_future, sent = self.executor.share(medium, cache=True)
+            return (medium_future,), sent
+
+        results, received, sent = self._run(part_log_weights, share, desc="log-weights")
         summary = np.concatenate(results)
         if summary.shape[0] != self.batches:
             raise DistributedError(f"{summary.shape[0]} of {self.batches} batches came back")
@@ -297,17 +302,18 @@ class DistributedPathStore:
         t0 = time.perf_counter()
         check_same_grid(self, cell_edges(medium))
         ex = self.executor
-        medium_future, sent = ex.share(medium, cache=True)
-        residual_future = None
         if residual is not None:
             residual = check_residual(residual, self.scene)
-            residual_future, more = ex.share(residual)
-            sent += more
-        results, received, more = self._run(
-            part_replay, medium_future, residual_future, float(mis_ratio),
+
+        def share() -> tuple[tuple, int]:
+            medium_future, sent = ex.share(medium, cache=True)
+            residual_future, more = (None, 0) if residual is None else ex.share(residual)
+            return (medium_future, residual_future, float(mis_ratio)), sent + more
+
+        results, received, sent = self._run(
+            part_replay, share,
             desc="recycled-images" if residual is None else "recycled-gradient",
         )
-        sent += more
         for (_, n, _), r in zip(self.parts, results, strict=True):
             if r[0].shape[0] != n:
                 raise DistributedError("a part returned the wrong number of batches")
