@@ -36,6 +36,8 @@ DX = 0.1
 BATCHES = 24
 FD_PHOTONS = 960_000
 GRAD_PHOTONS = 960_000
+#: camera paths of the camera-side estimators (72 pixels)
+CAMERA_PATHS = 72 * 2_400
 TABLE_REFF = [4.0, 10.0, 16.0, 22.0]
 ANGLES = [0.0, 1.0, 2.0, 4.0, 8.0, 15.0, 30.0, 60.0, 90.0, 120.0, 140.0, 160.0, 175.0, 180.0]
 #: the voxels compared: dense and thin, in each r_eff interval
@@ -103,6 +105,25 @@ def finite_difference(table, name, voxel, h, truncation, seed=21):
     return per_batch.mean(), per_batch.std(ddof=1) / math.sqrt(BATCHES)
 
 
+#: the finite-difference steps: g m-3 and micron
+STEPS = {"lwc": 0.01, "reff": 1.0}
+
+
+@pytest.fixture(scope="module")
+def finite_differences(table, truncation):
+    """The finite differences of J at VOXELS (mean, standard error) in ``name``, made once
+    per peak and shared by every estimator's test."""
+    made = {}
+
+    def of(name):
+        if name not in made:
+            made[name] = np.array([finite_difference(table, name, v, STEPS[name], truncation)
+                                   for v in VOXELS])
+        return made[name]
+
+    return of
+
+
 @pytest.fixture(scope="module")
 def gradient(table, truncation):
     return microphysics_gradient(medium_of(*microphysics(), truncation), scene(),
@@ -119,10 +140,11 @@ def without(term, estimate, error, fd):
     return p_value
 
 
-@pytest.mark.parametrize(("name", "h"), [("lwc", 0.01), ("reff", 1.0)])
-def test_the_score_function_matches_finite_differences(table, truncation, gradient, name, h):
+@pytest.mark.parametrize("name", ["lwc", "reff"])
+def test_the_score_function_matches_finite_differences(table, truncation, gradient,
+                                                       finite_differences, name):
     mean, se, _ = gradient
-    fd = np.array([finite_difference(table, name, v, h, truncation) for v in VOXELS])
+    fd = finite_differences(name)
     estimate = np.array([mean[name][v] for v in VOXELS])
     error = np.array([se[name][v] for v in VOXELS])
     # the comparison has power: the finite differences are resolved
@@ -130,16 +152,54 @@ def test_the_score_function_matches_finite_differences(table, truncation, gradie
     assert_consistent(estimate, error, fd[:, 0], BATCHES, reference_error=fd[:, 1],
                       label=f"d/d {name} vs FD")
     if name == "reff":
-        lwc, reff = microphysics()
-        in_beta = mean["lwc"] / extinction_part_of_gradient(np.ones_like(lwc), lwc, reff,
-                                                            table)[0]
-        optical = to_optical(medium_of(lwc, reff, truncation), table, optics="mie")
-        beta = optical["cloud_extinction"].transpose("x", "y", "z").values
-        cut = in_beta * beta * cloud_reff_slopes(lwc, reff, table, peak_shares(optical))[1]
-        extinction = extinction_part_of_gradient(in_beta, lwc, reff, table)[1] + cut
-        # without the albedo's and phase function's terms the estimate misses them
-        vertex = np.array([(mean[name] - extinction)[v] for v in VOXELS])
-        assert without(vertex, estimate, error, fd) < 1e-3, "the vertex terms are not needed"
+        assert_vertex_terms_needed(mean, error, fd, table, truncation)
+
+
+def assert_vertex_terms_needed(mean, error, fd, table, truncation):
+    """Without the albedo's and the phase function's terms (d/d r_eff less the extinction's
+    part, which d/d LWC gives) the estimate misses the finite differences."""
+    lwc, reff = microphysics()
+    in_beta = mean["lwc"] / extinction_part_of_gradient(np.ones_like(lwc), lwc, reff, table)[0]
+    optical = to_optical(medium_of(lwc, reff, truncation), table, optics="mie")
+    beta = optical["cloud_extinction"].transpose("x", "y", "z").values
+    cut = in_beta * beta * cloud_reff_slopes(lwc, reff, table, peak_shares(optical))[1]
+    extinction = extinction_part_of_gradient(in_beta, lwc, reff, table)[1] + cut
+    vertex = np.array([(mean["reff"] - extinction)[v] for v in VOXELS])
+    estimate = np.array([mean["reff"][v] for v in VOXELS])
+    assert without(vertex, estimate, error, fd) < 1e-3, "the vertex terms are not needed"
+
+
+@pytest.fixture(scope="module")
+def estimator_gradients(table, truncation):
+    """d/d LWC and d/d r_eff with every other estimator of d/d beta (the r_eff vertex terms
+    from the score function's own pass), made once per peak and estimator."""
+    made = {}
+
+    def of(estimator):
+        if estimator not in made:
+            made[estimator] = microphysics_gradient(
+                medium_of(*microphysics(), truncation), scene(), pixel_weights(),
+                photons=CAMERA_PATHS if estimator != "combined" else GRAD_PHOTONS // 4,
+                mie_table=table, estimator=estimator, seed=9, batches=BATCHES,
+                progress=False)
+        return made[estimator]
+
+    return of
+
+
+@pytest.mark.parametrize("estimator", ["drt", "sm", "backward-score", "combined"])
+@pytest.mark.parametrize("name", ["lwc", "reff"])
+def test_every_estimator_of_the_extinction_gradient_gives_both(
+        table, finite_differences, estimator_gradients, estimator, name):
+    """d/d LWC = e(r) d/d beta from any estimator of d/d beta, and d/d r_eff from its
+    extinction part plus the score function's vertex terms: both match the finite
+    differences."""
+    mean, se, info = estimator_gradients(estimator)
+    assert info["estimator"] == estimator
+    fd = finite_differences(name)
+    error = np.array([se[name][v] for v in VOXELS])
+    assert_consistent(np.array([mean[name][v] for v in VOXELS]), error, fd[:, 0], BATCHES,
+                      reference_error=fd[:, 1], label=f"{estimator}: d/d {name} vs FD")
 
 
 def test_microphysics_gradients_refuse_what_they_do_not_differentiate(table):
@@ -147,6 +207,9 @@ def test_microphysics_gradients_refuse_what_they_do_not_differentiate(table):
     optical = to_optical(medium_of(lwc, reff), table, optics="mie")
     with pytest.raises(ValueError, match="microphysical medium"):
         microphysics_gradient(optical, scene(), pixel_weights(), photons=100, mie_table=table)
+    with pytest.raises(ValueError, match="estimator must be one of"):
+        microphysics_gradient(medium_of(lwc, reff), scene(), pixel_weights(), photons=100,
+                              mie_table=table, estimator="fd")
 
 
 def test_the_cuda_kernels_give_the_cpus_gradients(table, backend):

@@ -102,15 +102,19 @@ def config(**settings) -> RetrievalConfig:
     return RetrievalConfig(**{**base, **settings})
 
 
-def test_the_loss_and_gradient_over_bands_are_the_sums_of_each_bands(tables, truth,
-                                                                        measurements):
+@pytest.mark.parametrize(("estimator", "pixel_sampling"),
+                         [("score", "uniform"), ("sm", "residual")])
+def test_the_loss_and_gradient_over_bands_are_the_sums_of_each_bands(
+        tables, truth, measurements, estimator, pixel_sampling):
     """Each band: its images (seed 2 (seed + b)), its weighted loss and residual
-    (image_loss) and microphysics_gradient (seed 2 (seed + b) + 1) with its table: the
-    function's loss, gradients and standard errors are their sums (in quadrature)."""
+    (image_loss) and microphysics_gradient (seed 2 (seed + b) + 1, the estimator asked) with
+    its table: the function's loss, gradients and standard errors are their sums (in
+    quadrature)."""
     start = cloud_of(0.3, (10.0, 10.0, 10.0))
     bands = [band_measurements(measurements, w) for w in WAVELENGTHS]
+    asked = dict(estimator=estimator, pixel_sampling=pixel_sampling)
     ev = loss_and_gradient_over_bands(start, bands, tables, photons=2000,
-                                      gradient_photons=1000, seed=4)
+                                      gradient_photons=1000, seed=4, **asked)
     loss, gradient, variance = 0.0, {"lwc": 0.0, "reff": 0.0}, {"lwc": 0.0, "reff": 0.0}
     for b, (band, table) in enumerate(zip(bands, tables, strict=True)):
         images = render(to_optical(start, table, optics="mie"), scene(), photons=2000,
@@ -121,7 +125,7 @@ def test_the_loss_and_gradient_over_bands_are_the_sums_of_each_bands(tables, tru
         loss += band_loss
         mean, std_error, _ = microphysics_gradient(start, scene(), residual, photons=1000,
                                                    mie_table=table, seed=2 * (4 + b) + 1,
-                                                   progress=False)
+                                                   progress=False, **asked)
         for name in gradient:
             gradient[name] = gradient[name] + mean[name]
             variance[name] = variance[name] + std_error[name] ** 2
@@ -323,14 +327,31 @@ def test_bad_inputs_are_refused_in_one_line(tables, truth, measurements):
         config(recycling="fixed")
     with pytest.raises(ValueError, match="photons 'auto'"):
         config(photons="auto")
-    with pytest.raises(ValueError, match="estimator sm"):
-        config(estimator=("sm",))
     with pytest.raises(ValueError, match="prior reff_smoothness is a term in r_eff"):
         RetrievalConfig(priors=({"term": "reff_smoothness", "weight": 0.01},))
     with pytest.raises(ValueError, match="unknowns must be one of"):
         RetrievalConfig(unknowns=("lwc",))
     with pytest.raises(ValueError, match="MicrophysicsRetrieval's"):
         Retrieval(one_band, optical, config())
+
+
+def test_the_configured_estimator_differentiates_the_extinction(monkeypatch, tables,
+                                                                measurements):
+    """A camera-side estimator in the configuration reaches every band's gradient, with
+    the pixels drawn by residual (its default); the score function stays the default."""
+    assert config().estimator == ("score",) and config().pixel_sampling == "uniform"
+    asked = []
+
+    def spy(*args, **kwargs):
+        asked.append((kwargs["estimator"], kwargs["pixel_sampling"]))
+        return loss_and_gradient_over_bands(*args, **kwargs)
+
+    monkeypatch.setattr("cloudct.retrieval.microphysics.loss_and_gradient_over_bands", spy)
+    run = MicrophysicsRetrieval(measurements, cloud_of(0.3, (10.0, 10.0, 10.0)),
+                                config(iterations=2, estimator=("sm",)), mie_tables=tables)
+    result = run.run(progress=False)
+    assert asked == [("sm", "residual")] * 2
+    assert np.isfinite(result["lwc"].values).all() and np.isfinite(result["reff"].values).all()
 
 
 def test_the_first_guess_holds_the_extinction_as_lwc(tables, truth):

@@ -71,6 +71,7 @@ import xarray as xr
 from benchmarks.common import RESULTS, WORK, markdown_table, run_header, write_result
 from benchmarks.scenes import LES, two_cumuli
 from cloudct.les import bundled_single_cloud, read_les
+from cloudct.mc.gradient import ESTIMATORS
 from cloudct.mc.render import default_method
 from cloudct.mc.scene import single_cloud_scene_of
 from cloudct.measurement_bands import stack_bands, synthesize_bands
@@ -187,7 +188,8 @@ def run_config(args: argparse.Namespace) -> RetrievalConfig:
                            iterations=args.iterations, time_limit=60.0 * args.minutes,
                            image_method=args.image_method, seed=args.seed,
                            schedule=args.schedule, extinction_share=args.extinction_share,
-                           hold_extinction=args.hold_extinction, checkpoint_every=10**9)
+                           hold_extinction=args.hold_extinction, checkpoint_every=10**9,
+                           estimator=args.estimator and (args.estimator,))
 
 
 def at_marks(log: dict, marks_s: list[float], offset: float = 0.0) -> dict:
@@ -243,6 +245,10 @@ def main() -> None:
                         default=RetrievalConfig.image_method,
                         help="the estimator of each band's residual images (combined: no "
                              "fireflies of the Mie peak, more time per photon)")
+    parser.add_argument("--estimator", choices=tuple(ESTIMATORS), default=None,
+                        help="the estimator of the extinction's terms of the gradients (the "
+                             "r_eff vertex terms stay the score function's; default: the "
+                             "retrieval's, score)")
     parser.add_argument("--schedule", choices=SCHEDULES, default=RetrievalConfig.schedule,
                         help="the step and photon schedule (cloudct.retrieval.schedule)")
     parser.add_argument("--extinction-share", type=float,

@@ -21,10 +21,17 @@ f moves with r_eff: the grid then carries d omega' / d r_eff and d t' / d r_eff,
 extinction's part gains beta d log(1 - omega f) / d r_eff
 (:func:`cloudct.physics.microphysics.delta_scaled_reff_slopes`).
 
-Both derivatives come from the same photons, so each batch gives one sample of each, and
-the standard errors are those of the batch means. Unbiased where the score function is:
-wherever paths can scatter (it misses the in-scattering a first drop of water would bring
-where nothing scatters, as :func:`~cloudct.mc.gradient.score_function_gradient` does).
+With the score function (``estimator="score"``) both derivatives come from the same
+photons, so each batch gives one sample of each, and the standard errors are those of the
+batch means. Unbiased where the score function is: wherever paths can scatter (it misses
+the in-scattering a first drop of water would bring where nothing scatters, as
+:func:`~cloudct.mc.gradient.score_function_gradient` does).
+
+Any other estimator of :data:`cloudct.mc.gradient.ESTIMATORS` gives d/d beta, hence d/d LWC
+whole and the extinction's part of d/d r_eff, by the same chain rule; the albedo's and the
+phase function's terms in r_eff are the score function's vertex terms alone (no other
+estimator carries them), from their own pass of forward photons. The two parts are then
+independent estimates, their standard errors added in quadrature.
 """
 
 from __future__ import annotations
@@ -42,6 +49,7 @@ from cloudct.mc.estimate import (
 )
 from cloudct.mc.executor import BatchExecutor
 from cloudct.mc.forward import GRADIENT, REFF_GRADIENT
+from cloudct.mc.gradient import gradient_estimate, gradient_estimator
 from cloudct.mc.scene import Scene
 from cloudct.medium import is_microphysical, is_optical
 from cloudct.optics import GRID, peak_shares, to_optical
@@ -84,6 +92,8 @@ def microphysics_gradient(
     *,
     photons: int,
     mie_table: xr.Dataset | None = None,
+    estimator: str = "score",
+    pixel_sampling: str = "uniform",
     seed: int = 0,
     batches: int = 32,
     rr_depth: int = 100,
@@ -105,6 +115,10 @@ def microphysics_gradient(
         photons: forward photons in all; seed, batches, rr_depth, rr_survival,
             aim_fraction, progress, backend and executor as for
             :func:`cloudct.mc.gradient.score_function_gradient`.
+        estimator: the estimator of d/d beta (:func:`cloudct.mc.gradient.gradient_estimate`,
+            with ``photons`` paths and ``pixel_sampling``); the r_eff vertex terms are the
+            score function's, from ``photons`` forward photons more unless it is
+            ``"score"`` (module documentation).
 
     Returns:
         ``(mean, std_error, info)``: ``mean`` and ``std_error`` map ``"lwc"`` [per g m-3]
@@ -127,20 +141,39 @@ def microphysics_gradient(
     sampling = Sampling(batches, seed, rr_depth, rr_survival, backend)
     per_batch = sampling.per_batch(photons)
     residual = check_residual(residual, scene)
+    gradient_estimator(estimator)  # a known name, before any work
     k = kernel_inputs(optical, scene, aim_fraction)
     run = dict(per_batch=per_batch, sampling=sampling, progress=progress, executor=executor)
-    in_beta, first = batch_means("forward", k, (GRADIENT, residual), desc="gradient", **run)
+    # d/d LWC = e(r) d/d beta; the extinction's part of d/d r_eff: (LWC e'(r) + beta d log(1 -
+    # omega f) / d r) d/d beta
+    lwc_per_beta, reff_per_beta = extinction_part_of_gradient(np.ones_like(lwc), lwc, reff,
+                                                              mie_table)
     slopes, d_log_scale = cloud_reff_slopes(lwc, reff, mie_table, peak_shares(optical))
+    beta = optical["cloud_extinction"].transpose(*GRID).values
+    reff_per_beta = reff_per_beta + beta * d_log_scale
+    if estimator == "score":
+        in_beta, first = batch_means("forward", k, (GRADIENT, residual), desc="gradient", **run)
+        in_beta = per_cloud_extinction(k, in_beta)  # d/d beta' -> d/d beta
     k_reff = k._replace(grid=k.grid._replace(cloud_reff_slopes=slopes))
     vertex, second = batch_means("forward", k_reff, (REFF_GRADIENT, residual),
                                  desc="gradient in r_eff", **run)
-    in_beta = per_cloud_extinction(k, in_beta)  # d/d beta' -> d/d beta
-    d_lwc, d_reff = extinction_part_of_gradient(in_beta, lwc, reff, mie_table)
-    d_reff = d_reff + in_beta * optical["cloud_extinction"].transpose(*GRID).values * d_log_scale
     mean, std_error = {}, {}
-    for name, per_batch_values in (("lwc", d_lwc), ("reff", d_reff + vertex)):
-        mean[name], std_error[name] = mean_and_std_error(per_batch_values)
-    info = {"photons": per_batch * batches, "aim_fraction": k.cams.aim_fraction,
+    if estimator == "score":  # the same photons: per-batch samples of both
+        for name, per_batch_values in (("lwc", lwc_per_beta * in_beta),
+                                       ("reff", reff_per_beta * in_beta + vertex)):
+            mean[name], std_error[name] = mean_and_std_error(per_batch_values)
+    else:
+        in_beta, in_beta_error, first = gradient_estimate(
+            optical, scene, residual, estimator=estimator, photons=photons, seed=seed,
+            batches=batches, pixel_sampling=pixel_sampling, progress=progress,
+            backend=backend, executor=executor)
+        vertex, vertex_error = mean_and_std_error(vertex)
+        mean["lwc"], std_error["lwc"] = lwc_per_beta * in_beta, lwc_per_beta * in_beta_error
+        mean["reff"] = reff_per_beta * in_beta + vertex
+        std_error["reff"] = np.hypot(reff_per_beta * in_beta_error, vertex_error)
+    traced = per_batch * batches  # the forward photons of the vertex terms' pass
+    info = {"photons": traced if estimator == "score" else first["photons"] + traced,
+            "estimator": estimator, "aim_fraction": k.cams.aim_fraction,
             "wall_time": first["wall_time"] + second["wall_time"],
             "events": first["events"] + second["events"], "backend": first["backend"]}
     return mean, std_error, info

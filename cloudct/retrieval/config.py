@@ -176,6 +176,7 @@ class RetrievalConfig:
                              f"{' or '.join(' '.join(u) for u in UNKNOWNS)}, got "
                              f"{' '.join(self.unknowns)}")
         if self.microphysical:  # the score function of forward photons: uniform pixels
+            # (another estimator gives d/d beta, the r_eff vertex terms stay the score's)
             self.estimator = self.estimator or ("score",) * len(self.stages)
             if self.priors is None:
                 self.priors = DEFAULT_MICROPHYSICS_PRIORS
@@ -333,9 +334,6 @@ class RetrievalConfig:
              " use adam or sgd"),
             (self.transmittance != "exponential", f"transmittance {self.transmittance!r} is not"
              f" supported for the {what}; leave it at 'exponential'"),
-            (set(self.estimator) != {"score"}, f"estimator {' '.join(self.estimator)}: the "
-             f"{what} are differentiated by the path score function of forward photons "
-             "alone (cloudct.mc.microphysics_gradient): use 'score'"),
             (len(self.stages) > 1, f"{len(self.stages)} stages: the {what} are retrieved in "
              "one stage (one [[stage]] row) for now"),
             (self.photons == AUTO, f"photons 'auto' is not fitted to the device for the "

@@ -15,8 +15,9 @@ every band's (seed paper Eq. 41) plus prior terms in LWC and r_eff::
 with r_bd = w_bd (I_bd - m_bd) the residual of band b, I_bd rendered through the band's
 Mie table (:func:`cloudct.optics.band_optics`), its derivatives by the path score function
 of forward photons (:func:`cloudct.mc.microphysics_gradient.microphysics_gradient`: the
-extinction's, the albedo's and the phase function's terms), L_empty the loss of a dark
-medium summed over the bands, Phi_j the extinction's terms of
+extinction's, the albedo's and the phase function's terms; with another ``estimator`` the
+extinction's terms are that estimator's), L_empty the loss of a dark medium summed over
+the bands, Phi_j the extinction's terms of
 :data:`cloudct.retrieval.priors.PRIORS` on the reference extinction e_0 LWC (e_0 the
 shortest band's extinction per unit LWC at
 :data:`~cloudct.retrieval.microphysics_first_guess.FIRST_GUESS_REFF`: a fixed multiple of LWC,
@@ -173,6 +174,8 @@ def loss_and_gradient_over_bands(
     seed: int = 0,
     weights: Sequence[np.ndarray] | None = None,
     method: str = "forward",
+    estimator: str = "score",
+    pixel_sampling: str = "uniform",
     batches: int = BATCHES,
     backend: str = "cpu",
 ) -> BandsLossGradient:
@@ -185,9 +188,9 @@ def loss_and_gradient_over_bands(
     its residual taken with ``weights[b]`` (default :func:`~cloudct.retrieval.loss.
     pixel_weights`) by :func:`~cloudct.retrieval.loss.image_loss`, and its gradients
     estimated by :func:`~cloudct.mc.microphysics_gradient.microphysics_gradient` with
-    ``gradient_photons`` (default ``photons``) on independent paths, seed ``2 (seed + b) +
-    1``. The bands' gradients and losses add up; their standard errors add in quadrature
-    (independent paths)."""
+    ``gradient_photons`` (default ``photons``) of ``estimator`` (its ``pixel_sampling``) on
+    independent paths, seed ``2 (seed + b) + 1``. The bands' gradients and losses add up;
+    their standard errors add in quadrature (independent paths)."""
     wavelengths = [float(band.attrs["wavelength"]) for band in bands]
     weights = [pixel_weights(band) for band in bands] if weights is None else weights
     optical = band_optics(medium, wavelengths, mie_tables=tables, optics="mie")
@@ -205,7 +208,8 @@ def loss_and_gradient_over_bands(
         variance += loss_std_error(residual, images["radiance_std_error"].values) ** 2
         mean, std_error, band_info = microphysics_gradient(
             medium, scene, residual, photons=gradient_photons or photons, mie_table=table,
-            seed=2 * (seed + b) + 1, batches=batches, progress=False, backend=backend)
+            estimator=estimator, pixel_sampling=pixel_sampling, seed=2 * (seed + b) + 1,
+            batches=batches, progress=False, backend=backend)
         for name in gradient:
             gradient[name] = gradient[name] + mean[name]
             error[name] = error[name] + std_error[name] ** 2
@@ -388,7 +392,8 @@ class MicrophysicsRetrieval:
             self.medium(), self.bands, self.tables, photons=photons,
             gradient_photons=gradient_photons,
             seed=cfg.seed * 1_000_003 + s.iteration * len(self.bands),
-            weights=self.weights, method=cfg.image_method, backend=self.backend)
+            weights=self.weights, method=cfg.image_method, estimator=cfg.estimator[0],
+            pixel_sampling=cfg.pixel_sampling, backend=self.backend)
         multiples = {}
         for name in ("lwc", "reff"):
             multiples[name], rms = noise_weight(ev.std_error[name], self.mask,
