@@ -175,9 +175,10 @@ class RetrievalConfig:
             raise ValueError("unknowns must be one of "
                              f"{' or '.join(' '.join(u) for u in UNKNOWNS)}, got "
                              f"{' '.join(self.unknowns)}")
-        if self.microphysical:  # the score function of forward photons: uniform pixels
-            # (another estimator gives d/d beta, the r_eff vertex terms stay the score's)
-            self.estimator = self.estimator or ("score",) * len(self.stages)
+        if self.microphysical:  # sample matching for d/d beta, the r_eff vertex terms the
+            # score function's (docs/benchmarks.md, "Sample matching for the extinction's
+            # terms"): pixels drawn by residual
+            self.estimator = self.estimator or ("sm",) * len(self.stages)
             if self.priors is None:
                 self.priors = DEFAULT_MICROPHYSICS_PRIORS
         quasi_newton = self.optimizer == "lbfgsb"
@@ -230,7 +231,8 @@ class RetrievalConfig:
             raise ValueError(f"pixel_sampling applies to the camera-side estimators "
                              f"({camera_side_names()}); no stage uses one")
         replay = [e.name for e in records if not e.replayable]
-        if replay and self.recycling != "none" and self.recycle_gradient:
+        # (the unknowns lwc reff refuse path recycling in their own words, below)
+        if replay and self.recycling != "none" and self.recycle_gradient and not self.microphysical:
             raise ValueError(
                 "recycled gradients (a recycling policy without recycle_gradient=False) "
                 f"replay stored forward paths, which the estimator {replay[0]!r} does not "

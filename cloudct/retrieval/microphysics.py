@@ -13,11 +13,11 @@ every band's (seed paper Eq. 41) plus prior terms in LWC and r_eff::
     dL / dr_eff_v = sum_b sum_d r_bd dI_bd / dr_eff_v + L_empty sum_k w_k m_k dPsi_k / dr_eff_v,
 
 with r_bd = w_bd (I_bd - m_bd) the residual of band b, I_bd rendered through the band's
-Mie table (:func:`cloudct.optics.band_optics`), its derivatives by the path score function
-of forward photons (:func:`cloudct.mc.microphysics_gradient.microphysics_gradient`: the
-extinction's, the albedo's and the phase function's terms; with another ``estimator`` the
-extinction's terms are that estimator's), L_empty the loss of a dark medium summed over
-the bands, Phi_j the extinction's terms of
+Mie table (:func:`cloudct.optics.band_optics`), its derivatives by
+:func:`cloudct.mc.microphysics_gradient.microphysics_gradient` (the extinction's terms by
+the configured ``estimator``, sample matching by default; the albedo's and the phase
+function's terms in r_eff by the path score function of forward photons), L_empty the
+loss of a dark medium summed over the bands, Phi_j the extinction's terms of
 :data:`cloudct.retrieval.priors.PRIORS` on the reference extinction e_0 LWC (e_0 the
 shortest band's extinction per unit LWC at
 :data:`~cloudct.retrieval.microphysics_first_guess.FIRST_GUESS_REFF`: a fixed multiple of LWC,
