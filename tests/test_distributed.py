@@ -288,45 +288,62 @@ def _kill_in(kinds: tuple[str, ...], marker: str):
     return hook
 
 
+def _recycled_with_a_death(own_client, remote_client, arm) -> tuple:
+    """The recycled second evaluation of 3,200 paths here and on ``remote_client``'s
+    workers, ``arm()`` called before the remote one (it sets the fault hook), the hook
+    unset after: (reference, remote result)."""
+    medium, scene = gradient_medium(), gradient_scene()
+    w = weights_for(scene)
+    local = Recycler(scene, photons=3_200, policy=FixedPeriod(2), seed=3)
+    remote = DistributedRecycler(scene, client=remote_client, photons=3_200,
+                                 policy=FixedPeriod(2), seed=3)
+
+    def evaluate(recycler, t):
+        return recycler.evaluate(scaled(medium, 1.0 + 0.03 * t),
+                                 residual=lambda images: w * images.radiance.values)
+
+    for recycler in (local, remote):
+        evaluate(recycler, 0)  # records the paths
+    ref = evaluate(local, 1)
+    arm()
+    try:
+        return ref, evaluate(remote, 1)  # replays them: a worker dies in it
+    finally:
+        own_client.run(_set_hook, None)
+
+
+def _gradient_with_a_death(own_client, estimate, ex, arm) -> tuple:
+    """A camera-side gradient here and with the executor ``ex``, ``arm()`` called before
+    the latter, the hook unset after: (reference, distributed result)."""
+    medium, scene = gradient_medium(), gradient_scene()
+    run = dict(samples_per_pixel=64, seed=4, batches=8)
+    ref = estimate(medium, scene, pixel_weights(), **run)
+    arm()
+    try:
+        return ref, estimate(medium, scene, pixel_weights(), **run, executor=ex)
+    finally:
+        own_client.run(_set_hook, None)
+
+
 @pytest.mark.parametrize("call", ["sm", "drt", "replay"])
 def test_a_worker_killed_in_a_gradient_or_a_recycled_iteration_is_replaced_bitwise(
         own_client, tmp_path, call):
     """Sample matching and DRT gradients (each batch traced again elsewhere), and a recycled
     iteration whose worker dies with its part of the stored paths (the part recorded again
     from its seeds on a live worker, then replayed): bitwise the single-process result."""
-    medium, scene = gradient_medium(), gradient_scene()
     marker = str(tmp_path / "killed")
     if call == "replay":
-        w = weights_for(scene)
-        local = Recycler(scene, photons=3_200, policy=FixedPeriod(2), seed=3)
-        remote = DistributedRecycler(scene, client=own_client, photons=3_200,
-                                     policy=FixedPeriod(2), seed=3)
-
-        def evaluate(recycler, t):
-            return recycler.evaluate(scaled(medium, 1.0 + 0.03 * t),
-                                     residual=lambda images: w * images.radiance.values)
-
-        for recycler in (local, remote):
-            evaluate(recycler, 0)  # records the paths
-        ref = evaluate(local, 1)
-        own_client.run(_set_hook, _kill_in(("replay",), marker))
-        try:
-            out = evaluate(remote, 1)  # replays them: a worker dies with its part
-        finally:
-            own_client.run(_set_hook, None)
+        ref, out = _recycled_with_a_death(
+            own_client, own_client,
+            lambda: own_client.run(_set_hook, _kill_in(("replay",), marker)))
         assert not out.info["resampled"]
         assert same(out.images.radiance.values, ref.images.radiance.values)
         assert same(out.gradient, ref.gradient)
     else:
         estimate = {"sm": sample_matching_gradient, "drt": drt_gradient}[call]
-        run = dict(samples_per_pixel=64, seed=4, batches=8)
-        ref = estimate(medium, scene, pixel_weights(), **run)
-        own_client.run(_set_hook, _kill_in(("camera-gradient",), marker))
-        try:
-            out = estimate(medium, scene, pixel_weights(), **run,
-                           executor=DaskExecutor(own_client, batches_per_task=2))
-        finally:
-            own_client.run(_set_hook, None)
+        ref, out = _gradient_with_a_death(
+            own_client, estimate, DaskExecutor(own_client, batches_per_task=2),
+            lambda: own_client.run(_set_hook, _kill_in(("camera-gradient",), marker)))
         assert same(out[0], ref[0]) and same(out[1], ref[1])
     assert os.path.exists(marker)  # a worker did die during the call
 
@@ -360,41 +377,21 @@ def test_a_worker_dying_with_the_last_copy_of_a_scattered_input_is_survived_bitw
     dies in the call: the scheduler forgets the tasks that need them (scattered data has no
     lineage); the inputs are scattered again from the client and the tasks submitted once
     more: bitwise the single-process result."""
-    medium, scene = gradient_medium(), gradient_scene()
     marker = str(tmp_path / "killed")
     holder = min(own_client.scheduler_info(n_workers=-1)["workers"])
     kill = _kill_once(marker, after_first=False)
     if call == "replay":
-        w = weights_for(scene)
-        local = Recycler(scene, photons=3_200, policy=FixedPeriod(2), seed=3)
-        remote = DistributedRecycler(scene, client=_OneCopy(own_client), photons=3_200,
-                                     policy=FixedPeriod(2), seed=3)
-
-        def evaluate(recycler, t):
-            return recycler.evaluate(scaled(medium, 1.0 + 0.03 * t),
-                                     residual=lambda images: w * images.radiance.values)
-
-        for recycler in (local, remote):
-            evaluate(recycler, 0)  # records the paths
-        ref = evaluate(local, 1)
-        own_client.run(_set_hook, lambda kind, start: kind in ("log_weights", "replay")
-                       and kill(kind, start), workers=[holder])
-        try:
-            out = evaluate(remote, 1)
-        finally:
-            own_client.run(_set_hook, None)
+        ref, out = _recycled_with_a_death(
+            own_client, _OneCopy(own_client),
+            lambda: own_client.run(_set_hook, lambda kind, start: kind in (
+                "log_weights", "replay") and kill(kind, start), workers=[holder]))
         assert not out.info["resampled"]
         assert same(out.images.radiance.values, ref.images.radiance.values)
         assert same(out.gradient, ref.gradient)
     else:
-        run = dict(samples_per_pixel=64, seed=4, batches=8)
-        ref = drt_gradient(medium, scene, pixel_weights(), **run)
-        own_client.run(_set_hook, kill, workers=[holder])
-        try:
-            out = drt_gradient(medium, scene, pixel_weights(), **run,
-                               executor=_OneCopy(own_client, batches_per_task=2))
-        finally:
-            own_client.run(_set_hook, None)
+        ref, out = _gradient_with_a_death(
+            own_client, drt_gradient, _OneCopy(own_client, batches_per_task=2),
+            lambda: own_client.run(_set_hook, kill, workers=[holder]))
         assert same(out[0], ref[0]) and same(out[1], ref[1])
     assert os.path.exists(marker)  # the holder did die during the call
 
