@@ -43,9 +43,13 @@ cases = {
     "forward_sensor_kernel": (scene, *scalars, 0, 2, (images, events, np.zeros((4, 1, 1, NFLUX)),
                                                       d)),
     "backward_kernel": (scene, *scalars, 0, 2, (images, events)),
-    "camera_gradient_kernel": (scene, *scalars, 0, 2, 1, 2, False, True,
-                               (residual, residual_table(residual + 1.0), gradients, events)),
 }
+# the camera-side gradients, one kernel per estimator (pixels drawn from an alias table)
+camera_side = (scene, *scalars, 0, 2, 2, False, True,
+               (residual, residual_table(residual + 1.0), gradients, events))
+for name in ("drt_gradient_kernel", "sample_matching_gradient_kernel",
+             "backward_score_gradient_kernel"):
+    cases[name] = camera_side
 kernels = dict.fromkeys(cases, ck)
 
 # the replay kernels of path recycling, on a store's arrays
@@ -111,7 +115,9 @@ def test_kernels_compile_for_a_gpu():
             "array.reshape)")
         assert info["ptxas_rc"] == 0, f"{name}: ptxas failed: {info['ptxas']}"
     for name in ("forward_render_kernel", "forward_gradient_kernel", "backward_kernel",
-                 "camera_gradient_kernel", "replay_render_kernel", "replay_gradient_kernel"):
+                 "drt_gradient_kernel", "sample_matching_gradient_kernel",
+                 "backward_score_gradient_kernel", "replay_render_kernel",
+                 "replay_gradient_kernel"):
         assert "atom.global.add.f64" in result[name]["atomics"], result[name]
     assert "atom.global.add.f64" not in result["forward_residual_kernel"]["atomics"]
     assert not result["log_ratio_kernel"]["atomics"]

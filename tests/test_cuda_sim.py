@@ -449,8 +449,8 @@ def test_sort_by_path_length_is_stable():
 @pytest.mark.parametrize("estimator", ["drt", "drt-residual", "sm", "sm-quadratic",
                                        "sm-dual-suffix", "sm-residual"])
 @pytest.mark.parametrize("tpb", [1, 32])
-def test_camera_gradient_kernel_matches_cpu_to_rounding(simulated, estimator, tpb):
-    """The camera-side gradient kernel (DRT, sample matching; every pixel, or pixels drawn
+def test_camera_gradient_kernels_match_cpu_to_rounding(simulated, estimator, tpb):
+    """The camera-side gradient kernels (DRT, sample matching; every pixel, or pixels drawn
     from the residual's alias table): the same samples as the CPU (same streams), summed in
     another order (threads run pixel-major, the CPU sample-major per pixel): equal to
     float64 rounding, with the same path vertices."""

@@ -120,7 +120,7 @@ def test_the_cuda_kernels_use_the_same_cache(tmp_path):
     """numba-cuda's cache takes cloudct's locator (compiling needs a GPU: not here)."""
     code = textwrap.dedent("""
         import cloudct.mc.cuda_kernels as k, cloudct.recycling.cuda_replay as r
-        for kernel in (k.forward_render_kernel, k.camera_gradient_kernel,
+        for kernel in (k.forward_render_kernel, k.sample_matching_gradient_kernel,
                        r.replay_gradient_kernel):
             locator = kernel._cache._impl.locator
             print(type(locator).__name__, locator.get_cache_path())

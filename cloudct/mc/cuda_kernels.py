@@ -35,7 +35,13 @@ from cloudct.jit_cache import install_cuda_locator
 from cloudct.mc.accumulate import add_to, register_cuda_implementation
 from cloudct.mc.backend import sort_by_path_length
 from cloudct.mc.backward import trace_pixel_sample
-from cloudct.mc.camera_gradient import drawn_pixel, gradient_sample
+from cloudct.mc.camera_gradient import (
+    DRT,
+    SAMPLE_MATCHING,
+    SCORE,
+    drawn_pixel,
+    gradient_sample,
+)
 from cloudct.mc.forward import GRADIENT, REFF_GRADIENT, RENDER, RESIDUAL, trace_photon
 
 register_cuda_implementation()
@@ -204,18 +210,18 @@ def backward_kernel(
     cuda.atomic.add(events, b, vertices)
 
 
-@cuda.jit(cache=True)
-def camera_gradient_kernel(
-    scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, estimator,
-    probes, quadratic, mis, out,
+@cuda.jit(device=True)
+def camera_gradient_thread(
+    t, estimator, scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first,
+    count, probes, quadratic, mis, out,
 ):
-    """DRT or sample-matching samples ``first .. first + count - 1`` of every batch (and of
-    every pixel, when the alias table is empty), with the sample indices of
-    :func:`cloudct.mc.camera_gradient.camera_gradient_batches`: out = (residual[view, row,
-    col], table, gradients[nbatch, nx, ny, nz], events[nbatch])."""
+    """Thread ``t``'s DRT, sample-matching or backward score-function sample (``estimator``,
+    a code of :mod:`cloudct.mc.camera_gradient`) among the samples ``first .. first + count
+    - 1`` of every batch (and of every pixel, when the alias table is empty), with the
+    sample indices of :func:`cloudct.mc.camera_gradient.camera_gradient_batches`: out =
+    (residual[view, row, col], table, gradients[nbatch, nx, ny, nz], events[nbatch])."""
     residual, table, gradients, events = out
     nbatch = gradients.shape[0]
-    t = cuda.grid(1)
     nrows, ncols = residual.shape[1], residual.shape[2]
     if table.pixel.size == 0:
         if t >= residual.size * nbatch * count:
@@ -238,6 +244,56 @@ def camera_gradient_kernel(
         mis,
     )
     cuda.atomic.add(events, b, vertices)
+
+
+# One kernel per camera-side estimator, the estimator an int64 constant: NVVM folds it and
+# leaves the other estimators' code out, so a run compiles only the estimator it uses (the
+# three in one kernel were 225,000 lines of PTX and 107 s of NVVM and ptxas on 2 cores,
+# each alone 66,000-83,000 lines and 25-45 s).
+DRT_CODE = np.int64(DRT)
+SAMPLE_MATCHING_CODE = np.int64(SAMPLE_MATCHING)
+SCORE_CODE = np.int64(SCORE)
+
+
+@cuda.jit(cache=True)
+def drt_gradient_kernel(
+    scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, probes,
+    quadratic, mis, out,
+):
+    """DRT samples: :func:`camera_gradient_thread` (``probes``, ``quadratic`` and ``mis``
+    unused)."""
+    camera_gradient_thread(cuda.grid(1), DRT_CODE, scene, periodic, ground, rr_depth,
+                           rr_survival, seed, per_batch, first, count, probes, quadratic,
+                           mis, out)
+
+
+@cuda.jit(cache=True)
+def sample_matching_gradient_kernel(
+    scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, probes,
+    quadratic, mis, out,
+):
+    """Sample-matching samples: :func:`camera_gradient_thread`."""
+    camera_gradient_thread(cuda.grid(1), SAMPLE_MATCHING_CODE, scene, periodic, ground,
+                           rr_depth, rr_survival, seed, per_batch, first, count, probes,
+                           quadratic, mis, out)
+
+
+@cuda.jit(cache=True)
+def backward_score_gradient_kernel(
+    scene, periodic, ground, rr_depth, rr_survival, seed, per_batch, first, count, probes,
+    quadratic, mis, out,
+):
+    """Backward score-function samples: :func:`camera_gradient_thread` (``probes``,
+    ``quadratic`` and ``mis`` unused)."""
+    camera_gradient_thread(cuda.grid(1), SCORE_CODE, scene, periodic, ground, rr_depth,
+                           rr_survival, seed, per_batch, first, count, probes, quadratic,
+                           mis, out)
+
+
+#: The camera-side gradient kernel of each estimator code.
+CAMERA_GRADIENT_KERNELS = {DRT: drt_gradient_kernel,
+                           SAMPLE_MATCHING: sample_matching_gradient_kernel,
+                           SCORE: backward_score_gradient_kernel}
 
 
 # --------------------------------------------------------------------------------------
@@ -475,7 +531,8 @@ class CameraGradientLauncher(Launcher):
         self._pixel_sample_setup(k, rr_depth, rr_survival, seed, per_batch,
                                  (gradients, events), threads_per_block)
         check_fits(gradients.nbytes, "the per-batch gradients")
-        self.estimator = (estimator, probes, quadratic, mis)
+        self.kernel = CAMERA_GRADIENT_KERNELS[int(estimator)]
+        self.options = (probes, quadratic, mis)
         self.residual = to_device(residual)
         self.table = to_device(table)
         self.gradients = device_zeros(gradients.shape)
@@ -485,9 +542,9 @@ class CameraGradientLauncher(Launcher):
         self.chunk = max(1, MAX_LAUNCH // self.width)
 
     def launch(self, first: int, count: int) -> None:
-        launch_kernel(camera_gradient_kernel, self.width * count, self.tpb, self.scene,
-                      *self.scalars, first, count, *self.estimator, (self.residual, self.table,
-                      self.gradients, self.events))
+        launch_kernel(self.kernel, self.width * count, self.tpb, self.scene, *self.scalars,
+                      first, count, *self.options, (self.residual, self.table, self.gradients,
+                                                    self.events))
 
     def finish(self) -> None:
         gradients, events = self.host
