@@ -246,13 +246,10 @@ def camera_gradient_thread(
     cuda.atomic.add(events, b, vertices)
 
 
-# One kernel per camera-side estimator, the estimator an int64 constant: NVVM folds it and
-# leaves the other estimators' code out, so a run compiles only the estimator it uses (the
-# three in one kernel were 225,000 lines of PTX and 107 s of NVVM and ptxas on 2 cores,
-# each alone 66,000-83,000 lines and 25-45 s).
-DRT_CODE = np.int64(DRT)
-SAMPLE_MATCHING_CODE = np.int64(SAMPLE_MATCHING)
-SCORE_CODE = np.int64(SCORE)
+# One kernel per camera-side estimator, given as an int64 constant that NVVM folds: a run
+# compiles only its estimator's code (all three in one kernel: 225,000 lines of PTX and 107 s
+# of NVVM and ptxas on 2 cores; each alone 66,000-83,000 lines and 25-45 s).
+DRT_CODE, SAMPLE_MATCHING_CODE, SCORE_CODE = (np.int64(e) for e in (DRT, SAMPLE_MATCHING, SCORE))
 
 
 @cuda.jit(cache=True)

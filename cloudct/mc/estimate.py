@@ -14,7 +14,8 @@ holds what every estimator shares:
   pixel p in batch b ``(p * batches + b) * per_batch + k`` (each index owns its random
   streams, so an estimate does not depend on threads, rounds, devices or workers);
 - **rounds**: a runner traces samples ``first .. last - 1`` of every batch, called in up to
-  50 rounds with a progress bar (:func:`run_in_rounds`);
+  50 rounds with a progress bar (:func:`run_in_rounds`); on the CPU each thread takes the
+  next batch as it frees (a dynamic schedule, which leaves every sum as it is);
 - the **batch kernels**: :data:`BATCH_KERNELS` holds one :class:`BatchKernel` per kind of
   path the engine traces (forward photons for images or for the score-function gradient,
   forward photons with flux tallies, backward pixel samples, camera-side gradient samples;
@@ -39,6 +40,7 @@ from typing import NamedTuple
 
 import numpy as np
 import xarray as xr
+from numba import parallel_chunksize
 from tqdm.auto import tqdm
 
 from cloudct.mc.backend import BACKENDS, resolve_backend
@@ -203,7 +205,12 @@ def run_in_rounds(
     )
     disable = None if progress is None else not progress
     start = time.perf_counter()
-    with tqdm(total=per_batch * batches, disable=disable, unit=unit, desc=desc) as bar:
+    # the CPU's threads take the batches one at a time as each frees (numba's dynamic
+    # schedule): a batch's paths take a random time, and the even split of the batches left
+    # threads waiting at the end of every round; each batch is still traced in order by one
+    # thread, so the sums are the same
+    with tqdm(total=per_batch * batches, disable=disable, unit=unit, desc=desc) as bar, \
+            parallel_chunksize(1):
         for first, last in zip(rounds[:-1], rounds[1:], strict=True):
             run(int(first), int(last))
             bar.update(int(last - first) * batches)
