@@ -230,9 +230,10 @@ class RetrievalConfig:
         if self.pixel_sampling != "uniform" and not camera_side:
             raise ValueError(f"pixel_sampling applies to the camera-side estimators "
                              f"({camera_side_names()}); no stage uses one")
+        if self.microphysical:  # their own refusals first (recycling, lbfgsb: in their words)
+            self._check_microphysics()
         replay = [e.name for e in records if not e.replayable]
-        # (the unknowns lwc reff refuse path recycling in their own words, below)
-        if replay and self.recycling != "none" and self.recycle_gradient and not self.microphysical:
+        if replay and self.recycling != "none" and self.recycle_gradient:
             raise ValueError(
                 "recycled gradients (a recycling policy without recycle_gradient=False) "
                 f"replay stored forward paths, which the estimator {replay[0]!r} does not "
@@ -261,8 +262,6 @@ class RetrievalConfig:
         if not 0.0 < self.step_decay <= 1.0:
             raise ValueError(f"step_decay must be in (0, 1], got {self.step_decay}")
         self._check_schedule()
-        if self.microphysical:
-            self._check_microphysics()
         if min(self.voxel_blocks) < 1:
             raise ValueError(f"voxel_blocks must be >= 1, got {self.voxel_blocks}")
         if self.photons != AUTO and not (isinstance(self.photons, int) and self.photons >= 1):
