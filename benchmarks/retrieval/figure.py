@@ -4,10 +4,13 @@ Reads the JSON files written by ``benchmarks/retrieval/single_cloud.py`` and dra
 iteration wall time, the loss (a running mean over ``--smooth`` iterations: single losses
 carry the Monte Carlo noise of their images), epsilon and delta (seed paper Eq. 54); dotted
 lines mark the start of each coarse-to-fine stage (the loss of a finer stage is over other
-pixels, so it jumps there). Usage::
+pixels, so it jumps there). With ``--compile-apart`` the time axis leaves out the seconds
+each iteration spent compiling kernels (the log's ``compile_seconds``: a new process on a
+GPU, or on a CPU with an empty kernel cache) and each run's label says how many there were,
+so that runs on other devices, cold and warm, compare by their iterations. Usage::
 
     python -m benchmarks retrieval.figure RESULT.json [RESULT.json ...] --labels A B ...
-        --output docs/figures/retrieval_single_cloud.png
+        --output docs/figures/retrieval_single_cloud.png [--compile-apart]
 """
 
 from __future__ import annotations
@@ -37,6 +40,8 @@ def main() -> None:
     parser.add_argument("--labels", nargs="+", default=None)
     parser.add_argument("--smooth", type=int, default=10)
     parser.add_argument("--output", required=True)
+    parser.add_argument("--compile-apart", action="store_true",
+                        help="time without the compile seconds, given in each label")
     args = parser.parse_args()
     labels = args.labels or [Path(r).stem for r in args.results]
     if len(labels) != len(args.results):
@@ -46,7 +51,12 @@ def main() -> None:
     for path, label in zip(args.results, labels, strict=True):
         result = json.loads(Path(path).read_text())
         log = result["log"]
-        minutes = np.asarray(log["seconds"]) / 60.0
+        seconds = np.asarray(log["seconds"])
+        if args.compile_apart:
+            compiled = np.cumsum(log.get("compile_seconds", np.zeros(seconds.size)))
+            seconds = seconds - compiled
+            label = f"{label} (+{compiled[-1]:.0f} s compiling)"
+        minutes = seconds / 60.0
         line = axes[0].plot(
             minutes, running_mean(np.asarray(log["loss"]), args.smooth), label=label
         )[0]
@@ -59,7 +69,8 @@ def main() -> None:
     axes[1].set(ylabel="epsilon")
     axes[2].set(ylabel="delta")
     for ax in axes:
-        ax.set_xlabel("iteration wall time [min]")
+        ax.set_xlabel("iteration wall time" + (", compiling apart" if args.compile_apart
+                                               else "") + " [min]")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)

@@ -11,19 +11,23 @@ iteration wall time (measurement synthesis and carving are not counted; the carv
 time is reported).
 
 Reported (JSON at ``--output``): the settings, the machine and load average, the whole
-per-iteration log (loss, epsilon, delta, cumulative seconds, stage, resampling), and
-epsilon/delta at the time marks ``--marks`` (minutes; the last iteration finished by then),
+per-iteration log (loss, epsilon, delta, cumulative seconds, compile seconds, stage,
+resampling), and epsilon/delta at the time marks ``--marks`` (minutes of iteration wall time,
+compiling included; the last iteration finished by then, with the seconds it spent compiling),
 and the final medium's loss from fresh paths (``--final-loss-photons``, not timed): the
 logged losses of recycled runs come from the stored paths the steps were fitted to, and a
 single render's squared residual is biased by its variance, so runs are compared on
 ``final_loss_fresh``, 1/2 sum w (I_A - m)(I_B - m) over two independent renders A and B.
 With ``--photon-budget`` (and a fixed ``--photons``) the run stops after the photons traced
 reach the budget instead of after ``--minutes``: settings compared at equal compute, whatever
-else the machine runs (the ablation of the priors, ``retrieval.priors``). Usage::
+else the machine runs (the ablation of the priors, ``retrieval.priors``). ``--backend cuda``
+runs everything on a GPU (with ``--photons auto``, the retrieval's default, the photons
+follow the device). Usage::
 
     python -m benchmarks retrieval.single_cloud --minutes 60 [--recycling none|fixed|adaptive]
         [--photons 100000] [--step 2.0] [--voxel-blocks 4 2 1] [--output FILE.json]
         [--medium-output FILE.nc] [--start FILE.nc] [--truth FILE.nc] [--assume FILE.nc]
+        [--backend cpu|cuda|auto]
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ from benchmarks.common import (
     write_result,
 )
 from cloudct.cli.run_options import add_run_options, config_from_options
+from cloudct.mc.backend import device_description
 from cloudct.mc.render import default_method, render, single_cloud_medium
 from cloudct.mc.scene import Scene
 from cloudct.measurements import (
@@ -63,30 +68,31 @@ from cloudct.retrieval.loss import cross_loss, pixel_weights
 
 
 def measurements_for(truth, photons: int, work: Path, name: str = "single_cloud",
-                     method: str | None = None):
-    """Noise-free measurements of the truth, rendered once and cached under ``name`` (and the
-    render's ``method`` where it is not the forward estimator; None: the optics' default,
-    :func:`cloudct.mc.render.default_method`: combined for Mie optics)."""
+                     method: str | None = None, backend: str = "cpu"):
+    """Noise-free measurements of the truth, rendered once (on ``backend``) and cached under
+    ``name`` (and the render's ``method`` where it is not the forward estimator; None: the
+    optics' default, :func:`cloudct.mc.render.default_method`: combined for Mie optics)."""
     method = method or default_method(truth)
     tag = "" if method == "forward" else f"{method}_"
     path = work / f"{name}_measurements_{tag}{photons}.nc"
     if path.exists():
         return load_measurements(path)
     work.mkdir(parents=True, exist_ok=True)
-    measurements = synthesize_measurements(truth, photons=photons, seed=1, method=method)
+    measurements = synthesize_measurements(truth, photons=photons, seed=1, method=method,
+                                           backend=backend)
     save_measurements(measurements, path, overwrite=True)
     return measurements
 
 
 def truth_and_measurements(truth_file: str | None, photons: int, work: Path,
-                           method: str | None = None):
+                           method: str | None = None, backend: str = "cpu"):
     """The true medium (``truth_file``, default the bundled single cloud) and its cached
     noise-free measurements (:func:`measurements_for`, named after the file)."""
     if truth_file is None:
         truth, name = single_cloud_medium(), "single_cloud"
     else:
         truth, name = load_medium(truth_file), Path(truth_file).stem
-    return truth, measurements_for(truth, photons, work, name, method)
+    return truth, measurements_for(truth, photons, work, name, method, backend)
 
 
 def at_marks(log: dict, marks_s: list[float]) -> dict:
@@ -102,7 +108,9 @@ def at_marks(log: dict, marks_s: list[float]) -> dict:
             continue
         i = int(done[-1])
         out[key] = {
-            "iteration": i + 1, "seconds": float(seconds[i]), "epsilon": log["epsilon"][i],
+            "iteration": i + 1, "seconds": float(seconds[i]),
+            "compile_seconds": float(np.sum(log.get("compile_seconds", [0.0])[:i + 1])),
+            "epsilon": log["epsilon"][i],
             "delta": log["delta"][i], "loss": log["loss"][i],
             "epsilon_average": log["epsilon_average"][i],
             "delta_average": log["delta_average"][i],
@@ -111,7 +119,8 @@ def at_marks(log: dict, marks_s: list[float]) -> dict:
     return out
 
 
-def fresh_loss(medium: xr.Dataset, data: xr.Dataset, photons: int, seed: int = 10**9) -> dict:
+def fresh_loss(medium: xr.Dataset, data: xr.Dataset, photons: int, seed: int = 10**9,
+               backend: str = "cpu") -> dict:
     """The loss of ``medium`` against the measurements ``data`` from two independent fresh
     renders A and B (seeds ``seed`` + 1 and + 2; paths no iteration used): the unbiased
     1/2 sum w (I_A - m)(I_B - m), and A's squared residual (what a fresh iteration logs)
@@ -119,8 +128,8 @@ def fresh_loss(medium: xr.Dataset, data: xr.Dataset, photons: int, seed: int = 1
     w = pixel_weights(data)
     m = data["radiance"].values
     a, b = (
-        render(medium, Scene.from_dataset(data), photons=photons, seed=seed + k)
-        ["radiance"].values
+        render(medium, Scene.from_dataset(data), photons=photons, seed=seed + k,
+               backend=backend)["radiance"].values
         for k in (1, 2)
     )
     return {"photons": photons, "loss": cross_loss(a, b, m, w),
@@ -149,6 +158,10 @@ def main() -> None:
                              "(0: none)")
     add_run_options(parser, iterations=1_000_000, photons=100_000)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--backend", choices=("cpu", "cuda", "auto"), default="cpu",
+                        help="where the measurements, the carving, the retrieval and the final "
+                             "loss run (a new process compiles the kernels within its first "
+                             "iterations: the log and the marks give that time apart)")
     parser.add_argument("--work", default=str(WORK))
     parser.add_argument("--output", default=str(RESULTS / "retrieval_single_cloud.json"))
     parser.add_argument("--medium-output", default=None,
@@ -179,14 +192,16 @@ def main() -> None:
 
     t0 = time.perf_counter()
     truth, measurements = truth_and_measurements(
-        args.truth, args.measurement_photons, Path(args.work), args.measurement_method
+        args.truth, args.measurement_photons, Path(args.work), args.measurement_method,
+        args.backend,
     )
     synth_s = time.perf_counter() - t0
     carving_s = None
     assumed = truth if args.assume is None else load_medium(args.assume)
     if args.start is None:
         t0 = time.perf_counter()
-        initial = initial_medium(carve(measurements, assumed, profile=args.profile), assumed)
+        initial = initial_medium(carve(measurements, assumed, profile=args.profile,
+                                       backend=args.backend), assumed)
         mask, carving_s = None, time.perf_counter() - t0
     else:
         start = xr.load_dataset(args.start)
@@ -204,7 +219,9 @@ def main() -> None:
         "assumed_optics": optics_name(assumed),
         "config": {k: v for k, v in vars(config).items()},
     }
-    run = Retrieval(measurements, initial, config, mask=mask, truth=truth)
+    run = Retrieval(measurements, initial, config, mask=mask, truth=truth,
+                    backend=args.backend)
+    result["device"] = device_description(run.backend)
     eps0 = run.state.extinction
     from cloudct.retrieval.metrics import epsilon_delta
 
@@ -222,7 +239,8 @@ def main() -> None:
         retrieved.to_netcdf(args.medium_output)
     if args.final_loss_photons > 0:
         stage_data = coarse_measurements(measurements, run.config.stages[run.state.stage])
-        result["final_loss_fresh"] = fresh_loss(run.medium(), stage_data, args.final_loss_photons)
+        result["final_loss_fresh"] = fresh_loss(run.medium(), stage_data,
+                                                args.final_loss_photons, backend=run.backend)
     log = {k: [float(x) for x in v] for k, v in run.state.log.items()}
     result["log"] = log
     result["iterations"] = run.state.iteration
@@ -241,17 +259,20 @@ def marks_markdown(result: dict) -> str:
     as a table."""
     log = result["log"]
     shells = [name for name in SHELL_LOG if name in log]
-    rows = [["start", "0", f"{result['initial']['epsilon']:.3f}",
+    rows = [["start", "0", "", f"{result['initial']['epsilon']:.3f}",
              f"{result['initial']['delta']:+.3f}", "", "", *([""] * len(shells))]]
     final = {**result["final"], "iteration": result["iterations"],
-             **{name: log[name][-1] for name in shells}, "epsilon_average": math.nan}
+             **{name: log[name][-1] for name in shells}, "epsilon_average": math.nan,
+             "compile_seconds": float(np.sum(log.get("compile_seconds", [0.0])))}
     for mark, v in [*result["marks"].items(), ("end", final)]:
         if v is not None:
-            rows.append([mark.replace("_", " "), str(v["iteration"]), f"{v['epsilon']:.3f}",
+            rows.append([mark.replace("_", " "), str(v["iteration"]),
+                         f"{v.get('compile_seconds', math.nan):.0f}", f"{v['epsilon']:.3f}",
                          f"{v['delta']:+.3f}", f"{v['loss']:.3g}",
                          f"{v['epsilon_average']:.3f}", *(f"{v[n]:.3f}" for n in shells)])
     fresh = result.get("final_loss_fresh")
-    lines = markdown_table(["time", "iteration", "epsilon", "delta", "loss",
+    lines = markdown_table(["time", "iteration", "compiling so far [s]", "epsilon", "delta",
+                            "loss",
                             "epsilon of the average",
                             *(n.removeprefix("epsilon_").replace("_", " ") for n in shells)],
                            rows)
