@@ -167,8 +167,10 @@ def measure(name: str, args: argparse.Namespace) -> list[dict]:
         launch(kernel, args.threads_per_block[0])  # compiles (or loads) the kernel
         cuda.synchronize()
         first = time.perf_counter() - start
-        registers = kernel.get_regs_per_thread()
-        local = kernel.get_local_mem_per_thread()
+        # per signature (one, after the launch), unless the dispatcher is specialised
+        registers, local = (next(iter(v.values())) if isinstance(v, dict) else v
+                            for v in (kernel.get_regs_per_thread(),
+                                      kernel.get_local_mem_per_thread()))
         for tpb in args.threads_per_block:
             seconds = []
             for _ in range(args.repeats):
