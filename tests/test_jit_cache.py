@@ -145,31 +145,3 @@ def test_the_compile_clock_times_compiling_and_not_calling():
     with compile_clock() as again:
         square(4.0)
     assert first.seconds > 0.0 and again.seconds == 0.0
-
-
-def test_a_render_compiles_only_the_render_kernel():
-    """A forward render compiles (or loads) the RENDER kernel alone: the score function's two
-    passes are another kernel, which a render never types (with an empty cache a first render
-    took 46 s on 2 cores with every mode in one kernel, 29 s alone)."""
-    code = textwrap.dedent("""
-        import numpy as np
-        from cloudct.mc import forward
-        from cloudct.mc.cameras import Camera
-        from cloudct.mc.render import render_batches
-        from cloudct.mc.scene import Scene
-        from cloudct.mc.sun import Sun
-        from cloudct.medium import optical_medium
-
-        axis = 0.05 + 0.1 * np.arange(4)
-        medium = optical_medium(axis, axis, axis + 0.5, np.full((4, 4, 4), 5.0))
-        camera = Camera((0.2, 0.2, 3.0), (0.2, 0.2, 0.7), (0, 1, 0), fov=20.0, nrows=4, ncols=4)
-        render_batches(medium, Scene([camera], Sun(30.0, 20.0), "open", 0.3), photons=8,
-                       batches=2, progress=False)
-        print(len(forward.forward_render_batches.signatures),
-              len(forward.forward_gradient_batches.signatures))
-    """)
-    env = dict(os.environ)
-    env.pop("NUMBA_ENABLE_CUDASIM", None)
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                         check=True).stdout.split()
-    assert out == ["1", "0"]

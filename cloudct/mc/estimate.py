@@ -371,7 +371,7 @@ def batch_kernel_table() -> str:
              "split it by |", "|" + " --- |" * 5]
     for r in BATCH_KERNELS.values():
         split = " or ".join(r.splits)
-        lines.append(f"| `{r.name}` | `{r.cpu.__name__}` | `{r.cuda}` | {r.thread} | "
+        lines.append(f"| `{r.name}` | `{r.cpu.py_func.__name__}` | `{r.cuda}` | {r.thread} | "
                      f"{split if r.executors else r.elsewhere} |")
     return "\n".join(lines) + "\n"
 

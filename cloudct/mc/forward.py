@@ -443,6 +443,7 @@ def sun_transmittance(grid, sun, periodic, px, py, pz, ix, iy, iz):
     return math.exp(-tau) / sun.power
 
 
+@njit(parallel=True, cache=True)
 def forward_batches(
     grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
     per_batch, first, last, mode, images, residual, gradients, events,
@@ -451,88 +452,56 @@ def forward_batches(
 
     Batch ``b`` owns photon indices ``b * per_batch + k``, so which photons a batch
     holds, and their random streams, do not depend on the thread count. RENDER accumulates
-    batch b's local estimates (not yet divided by its photon count) in ``images[b]``
-    (:func:`forward_render_batches`); GRADIENT accumulates its residual-weighted
-    score-function gradient in ``gradients[b]``, REFF_GRADIENT the same way its vertex
-    terms in the cloud's r_eff (:func:`forward_gradient_batches`). ``events[b]`` counts the
-    path vertices. Two kernels, so that a render compiles only RENDER's code (on 2 cores 25 s
-    instead of 47 s for one kernel of every mode).
+    batch b's local estimates (not yet divided by its photon count) in ``images[b]``;
+    GRADIENT accumulates its residual-weighted score-function gradient in ``gradients[b]``
+    (each photon first traced in RESIDUAL mode for its sum, then again in GRADIENT mode,
+    with a scratch trail per batch so that each camera connection is walked once);
+    REFF_GRADIENT the same way its vertex terms in the cloud's r_eff.
+    ``events[b]`` counts the path vertices.
     """
-    if mode == RENDER:
-        forward_render_batches(grid, bank, cams, copies, sun, periodic, ground_albedo,
-                               rr_depth, rr_survival, seed, per_batch, first, last, images,
-                               events)
-    else:
-        forward_gradient_batches(grid, bank, cams, copies, sun, periodic, ground_albedo,
-                                 rr_depth, rr_survival, seed, per_batch, first, last, mode,
-                                 residual, gradients, events)
-
-
-@njit(parallel=True, cache=True)
-def forward_render_batches(
-    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
-    per_batch, first, last, images, events, fluxes=None,
-):
-    """RENDER of :func:`forward_batches`: batch b's local estimates into ``images[b]``, and
-    with ``fluxes`` (float64[batches, 1, 1, NFLUX]) its flux tallies into ``fluxes[b]``
-    (:func:`sensor_batches`; numba compiles the kernel without them when they are None)."""
-    unused = np.zeros((1, 1, 1))  # residual and gradient: not read or written in RENDER
-    for b in prange(images.shape[0]):
-        n = 0
-        for k in range(first, last):
-            index = b * per_batch + k
-            if fluxes is None:
-                n += trace_photon(
-                    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth,
-                    rr_survival, seed, index, RENDER, images[b], unused, unused, 0.0,
-                )[0]
-            else:
-                n += trace_photon(
-                    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth,
-                    rr_survival, seed, index, RENDER, images[b], unused, unused, 0.0, None, 0,
-                    None, fluxes[b],
-                )[0]
-        events[b] += n
-
-
-@njit(parallel=True, cache=True)
-def forward_gradient_batches(
-    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
-    per_batch, first, last, mode, residual, gradients, events,
-):
-    """GRADIENT or REFF_GRADIENT (``mode``) of :func:`forward_batches` into
-    ``gradients[b]``: each photon first traced in RESIDUAL mode for its sum, then again in
-    ``mode`` (the same random stream), with a scratch trail per batch so that each camera
-    connection is walked once."""
     capacity = 4 * (grid.x_edges.size + grid.y_edges.size + grid.z_edges.size) + 16
-    unused = np.zeros((1, 1, 1))  # images: not written by RESIDUAL and GRADIENT
-    for b in prange(gradients.shape[0]):
+    for b in prange(images.shape[0]):
         trail = Trail(np.zeros(capacity, np.int64), np.zeros(capacity), np.zeros(1, np.int64),
                       np.zeros(1))
         n = 0
         for k in range(first, last):
             index = b * per_batch + k
-            vertices, path_sum = trace_photon(
-                grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
-                seed, index, RESIDUAL, unused, residual, gradients[b], 0.0,
-            )
-            if path_sum != 0.0:
-                trace_photon(
+            if mode == RENDER:
+                n += trace_photon(
                     grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth,
-                    rr_survival, seed, index, mode, unused, residual, gradients[b], path_sum,
-                    None, 0, trail,
+                    rr_survival, seed, index, RENDER, images[b], residual, gradients[b], 0.0,
+                )[0]
+            else:
+                vertices, path_sum = trace_photon(
+                    grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth,
+                    rr_survival, seed, index, RESIDUAL, images[b], residual, gradients[b], 0.0,
                 )
-            n += vertices
+                if path_sum != 0.0:
+                    trace_photon(
+                        grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth,
+                        rr_survival, seed, index, mode, images[b], residual, gradients[b],
+                        path_sum, None, 0, trail,
+                    )
+                n += vertices
         events[b] += n
 
 
+@njit(parallel=True, cache=True)
 def sensor_batches(
     grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival, seed,
     per_batch, first, last, images, fluxes, events,
 ):
     """Trace photons ``first .. last - 1`` of every batch (the photons of
-    :func:`forward_batches` in RENDER mode), adding their local estimates to ``images[b]``
-    and their flux tallies to ``fluxes[b]`` (float64[batches, 1, 1, NFLUX]), in parallel
-    over batches; ``events[b]`` counts the path vertices."""
-    forward_render_batches(grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth,
-                           rr_survival, seed, per_batch, first, last, images, events, fluxes)
+    :func:`forward_batches` in RENDER mode), adding their local estimates
+    to ``images[b]`` and their flux tallies to ``fluxes[b]`` (float64[batches, 1, 1,
+    NFLUX]), in parallel over batches; ``events[b]`` counts the path vertices."""
+    unused = np.zeros((1, 1, 1))  # residual and gradient: not read or written in RENDER
+    for b in prange(images.shape[0]):
+        n = 0
+        for k in range(first, last):
+            n += trace_photon(
+                grid, bank, cams, copies, sun, periodic, ground_albedo, rr_depth, rr_survival,
+                seed, b * per_batch + k, RENDER, images[b], unused, unused, 0.0, None,
+                0, None, fluxes[b],
+            )[0]
+        events[b] += n
