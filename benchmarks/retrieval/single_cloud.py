@@ -95,6 +95,13 @@ def truth_and_measurements(truth_file: str | None, photons: int, work: Path,
     return truth, measurements_for(truth, photons, work, name, method, backend)
 
 
+def compiled_by(log: dict, iteration: int | None = None) -> float:
+    """Seconds the run spent compiling kernels up to and including ``iteration`` (0-based;
+    None: the whole run), from the log's ``compile_seconds`` (0 in logs without it)."""
+    per_iteration = log.get("compile_seconds", [0.0])
+    return float(np.sum(per_iteration if iteration is None else per_iteration[:iteration + 1]))
+
+
 def at_marks(log: dict, marks_s: list[float]) -> dict:
     """epsilon, delta and loss of the last iteration finished by each time mark (and the
     epsilon and delta of the iterate average, where the run averages)."""
@@ -109,7 +116,7 @@ def at_marks(log: dict, marks_s: list[float]) -> dict:
         i = int(done[-1])
         out[key] = {
             "iteration": i + 1, "seconds": float(seconds[i]),
-            "compile_seconds": float(np.sum(log.get("compile_seconds", [0.0])[:i + 1])),
+            "compile_seconds": compiled_by(log, i),
             "epsilon": log["epsilon"][i],
             "delta": log["delta"][i], "loss": log["loss"][i],
             "epsilon_average": log["epsilon_average"][i],
@@ -263,7 +270,7 @@ def marks_markdown(result: dict) -> str:
              f"{result['initial']['delta']:+.3f}", "", "", *([""] * len(shells))]]
     final = {**result["final"], "iteration": result["iterations"],
              **{name: log[name][-1] for name in shells}, "epsilon_average": math.nan,
-             "compile_seconds": float(np.sum(log.get("compile_seconds", [0.0])))}
+             "compile_seconds": compiled_by(log)}
     for mark, v in [*result["marks"].items(), ("end", final)]:
         if v is not None:
             rows.append([mark.replace("_", " "), str(v["iteration"]),
